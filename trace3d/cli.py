@@ -1,0 +1,224 @@
+"""``trace3d <step>``: one subcommand per pipeline step, plus ``trace3d bench <name>``.
+
+Thin by design: parse flags, call the library, write outputs atomically (into a temporary sibling
+that is renamed at the end).  Errors caused by the input are printed as one sentence and exit 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+from pathlib import Path
+
+from .errors import Trace3DError
+
+log = logging.getLogger("trace3d")
+
+
+def _setup_numba_cache() -> None:
+    # Numba's compile cache goes inside the checkout unless the user chose a location.
+    if "NUMBA_CACHE_DIR" not in os.environ:
+        os.environ["NUMBA_CACHE_DIR"] = str(Path(__file__).resolve().parent.parent / ".numba_cache")
+
+
+# ----------------------------------------------------------------------------------------------
+# step handlers (imports stay inside so that `trace3d --help` is fast)
+# ----------------------------------------------------------------------------------------------
+
+
+def _cmd_scene(args: argparse.Namespace) -> None:
+    from .io import atomic_dir
+    from .params import load_params_arg
+
+    params = load_params_arg(args.params)
+    out = Path(args.out)
+    with atomic_dir(out) as tmp:
+        if args.kind == "synthetic":
+            from .datasets import synthetic
+
+            synthetic.generate_scene(tmp, synthetic.params_from(params))
+        elif args.kind == "replica":
+            from .datasets import replica
+
+            replica.import_replica(_need_source(args), tmp, replica.params_from(params))
+        elif args.kind == "nvos":
+            from .datasets import llff
+
+            llff.import_nvos(_need_source(args), tmp, llff.params_from(params))
+        elif args.kind == "llff":
+            from .datasets import llff
+
+            llff.import_llff(_need_source(args), tmp, llff.params_from(params))
+        elif args.kind == "canonical":
+            from .scene import Scene
+
+            import shutil
+
+            scene = Scene.read(_need_source(args))
+            shutil.copytree(scene.root, tmp, dirs_exist_ok=True)
+        from .preview import scene_preview
+        from .scene import Scene
+
+        scene_preview(Scene.read(tmp), tmp / "preview.png")
+    log.info("wrote scene %s", out)
+
+
+def _need_source(args: argparse.Namespace) -> Path:
+    if not args.source:
+        raise Trace3DError(f"`trace3d scene {args.kind}` needs --source pointing at the data set folder.")
+    return Path(args.source)
+
+
+def _cmd_masks(args: argparse.Namespace) -> None:
+    from .io import atomic_dir
+    from .masks import run_masks
+    from .params import load_params_arg
+    from .scene import Scene
+
+    scene = Scene.read(args.scene)
+    with atomic_dir(args.out) as tmp:
+        run_masks(scene, tmp, args.source, load_params_arg(args.params))
+
+
+def _cmd_patches(args: argparse.Namespace) -> None:
+    from .io import atomic_dir
+    from .masks.patches import run_patches
+    from .params import load_params_arg
+    from .scene import Scene
+
+    scene = Scene.read(args.scene)
+    with atomic_dir(args.out) as tmp:
+        run_patches(scene, Path(args.masks), tmp, load_params_arg(args.params))
+
+
+def _cmd_poses(args: argparse.Namespace) -> None:
+    from .io import atomic_dir
+    from .params import load_params_arg
+    from .scene import Scene
+    from .sfm import run_poses
+
+    scene = Scene.read(args.scene)
+    with atomic_dir(args.out) as tmp:
+        run_poses(scene, tmp, load_params_arg(args.params))
+
+
+def _cmd_gaussians(args: argparse.Namespace) -> None:
+    from .io import atomic_dir
+    from .params import load_params_arg
+    from .scene import Scene
+    from .train import run_gaussians
+
+    scene = Scene.read(args.scene)
+    with atomic_dir(args.out) as tmp:
+        run_gaussians(scene, Path(args.poses) if args.poses else None, tmp, load_params_arg(args.params))
+
+
+def _cmd_bench(args: argparse.Namespace) -> None:
+    if args.name == "render":
+        from .render.bench import run_bench
+
+        result = run_bench(quick=args.quick)
+    elif args.name == "synthetic":
+        from .datasets.synthetic import run_bench
+
+        result = run_bench(quick=args.quick)
+    else:  # argparse restricts choices; kept for clarity
+        raise Trace3DError(f"unknown benchmark {args.name!r}.")
+    text = json.dumps(result, indent=2)
+    if args.out:
+        from .io import atomic_file
+
+        with atomic_file(args.out) as tmp:
+            tmp.write_text(text + "\n")
+    print(text)
+
+
+def _cmd_summary(args: argparse.Namespace) -> None:
+    from .report.summary import write_scene_table
+
+    write_scene_table([Path(p) for p in args.scenes], Path(args.out))
+
+
+# ----------------------------------------------------------------------------------------------
+# parser
+# ----------------------------------------------------------------------------------------------
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="trace3d",
+        description="Trace3D pipeline steps. Each step reads files, writes one output folder atomically.",
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="STEP")
+
+    params_help = "parameter overrides: inline JSON/YAML mapping, or @file.yaml"
+
+    p = sub.add_parser("scene", help="build a canonical scene folder (synthetic room or an importer)")
+    p.add_argument("kind", choices=["synthetic", "replica", "nvos", "llff", "canonical"])
+    p.add_argument("--out", required=True, help="output scene folder")
+    p.add_argument("--source", help="data set folder (importers only)")
+    p.add_argument("--params", help=params_help)
+    p.set_defaults(func=_cmd_scene)
+
+    p = sub.add_parser("masks", help="2D instance masks per view (simulated | files | sam)")
+    p.add_argument("--scene", required=True)
+    p.add_argument("--out", required=True)
+    p.add_argument("--source", default="simulated", choices=["simulated", "files", "sam"])
+    p.add_argument("--params", help=params_help)
+    p.set_defaults(func=_cmd_masks)
+
+    p = sub.add_parser("patches", help="overlap masks into disjoint primitive patches + hierarchy")
+    p.add_argument("--scene", required=True)
+    p.add_argument("--masks", required=True)
+    p.add_argument("--out", required=True)
+    p.add_argument("--params", help=params_help)
+    p.set_defaults(func=_cmd_patches)
+
+    p = sub.add_parser("poses", help="camera poses by pycolmap structure-from-motion (or the data set's)")
+    p.add_argument("--scene", required=True)
+    p.add_argument("--out", required=True)
+    p.add_argument("--params", help=params_help)
+    p.set_defaults(func=_cmd_poses)
+
+    p = sub.add_parser("gaussians", help="fit a 2D Gaussian Splatting scene")
+    p.add_argument("--scene", required=True)
+    p.add_argument("--poses", help="poses folder (cameras.json, points3D.ply); default: the scene's cameras")
+    p.add_argument("--out", required=True)
+    p.add_argument("--params", help=params_help)
+    p.set_defaults(func=_cmd_gaussians)
+
+    p = sub.add_parser("summary", help="write the per-scene summary table (results/scenes.md)")
+    p.add_argument("scenes", nargs="+", help="scene folders")
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=_cmd_summary)
+
+    p = sub.add_parser("bench", help="benchmarks; print one JSON object")
+    p.add_argument("name", choices=["render", "synthetic"])
+    p.add_argument("--quick", action="store_true", help="smaller sizes (smoke run)")
+    p.add_argument("--out", help="also write the JSON here")
+    p.set_defaults(func=_cmd_bench)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    _setup_numba_cache()
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    try:
+        args.func(args)
+    except Trace3DError as exc:
+        print(f"trace3d {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
