@@ -1,0 +1,25 @@
+# trace3d: Trace3D (ICCV 2025) as a cached, per-scene Snakemake pipeline.
+#   snakemake --cores 2 reproduce                        # everything in config/config.yaml
+#   snakemake --cores 2 results/room1/summary.json       # one scene, all its steps
+#   snakemake --cores 2 --forcerun gaussians results/room1/summary.json
+from snakemake.utils import min_version
+
+min_version("9.0")
+
+
+# The default benchmark, unless the user gave a config of their own (--configfile replaces it
+# instead of being merged into it, so a user's scene list is exactly theirs).
+if not config:
+
+    configfile: "config/config.yaml"
+
+
+include: "rules/common.smk"
+include: "rules/scene.smk"
+include: "rules/report.smk"
+
+
+rule reproduce:
+    default_target: True
+    input:
+        f"{RESULTS}/scenes.md",

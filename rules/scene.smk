@@ -1,0 +1,17 @@
+# Step 1: the canonical scene folder, generated (synthetic benchmark) or imported (Replica, NVOS, LLFF).
+
+
+rule scene:
+    output:
+        directory(f"{RESULTS}/{{scene}}/scene"),
+    params:
+        args=scene_kind_args,
+        code=code_version("scene.py", "datasets", "preview.py"),
+    log:
+        f"{RESULTS}/logs/{{scene}}/scene.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{scene}}/scene.tsv"
+    conda:
+        ENV
+    shell:
+        "trace3d scene {params.args} --out {output} > {log} 2>&1"

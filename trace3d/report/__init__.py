@@ -1,0 +1,1 @@
+"""Aggregation of per-scene results into the pipeline's tables and plots."""
