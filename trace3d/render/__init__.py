@@ -1,0 +1,16 @@
+"""2D Gaussian splatting rasterizer (2DGS): projection in torch, CPU tile kernels in numba with a
+hand-written backward, a dense pure-torch reference twin, and Gaussian Instance Tracing (GIT).
+
+Public API::
+
+    from trace3d.render import Splats, RenderOutput, render, trace, trace_argmax
+"""
+
+from .core import (BACKENDS, RenderOutput, render, set_default_backend, trace, trace_argmax,
+                   trace_by_backward)
+from .projection import Projected, Splats, project, quat_to_rotmat
+
+__all__ = [
+    "BACKENDS", "Projected", "RenderOutput", "Splats", "project", "quat_to_rotmat", "render",
+    "set_default_backend", "trace", "trace_argmax", "trace_by_backward",
+]

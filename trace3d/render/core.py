@@ -1,0 +1,237 @@
+"""Public rendering API: :func:`render`, :func:`trace`, :func:`trace_argmax`.
+
+Back ends: ``"numba"`` (CPU tile kernels with a hand-written backward, the default) and
+``"reference"`` (dense pure torch, the oracle).  Both share :func:`~trace3d.render.projection.project`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+from ..errors import Trace3DError
+from ..scene import Camera
+from .projection import Projected, Splats, check_splats, project
+from .reference import render_reference
+
+log = logging.getLogger(__name__)
+
+BACKENDS = ("numba", "reference")
+_default_backend = "reference"  # switched to "numba" once the kernels land
+
+
+def set_default_backend(name: str) -> None:
+    """Select the back end used when ``render``/``trace`` get ``backend=None``."""
+    global _default_backend
+    if name not in BACKENDS:
+        raise Trace3DError(f"render: unknown backend {name!r} (expected one of {list(BACKENDS)}).")
+    _default_backend = name
+
+
+def _backend(name: Optional[str]) -> str:
+    name = _default_backend if name is None else name
+    if name not in BACKENDS:
+        raise Trace3DError(f"render: unknown backend {name!r} (expected one of {list(BACKENDS)}).")
+    return name
+
+
+@dataclasses.dataclass
+class RenderOutput:
+    """What :func:`render` returns.
+
+    Attributes:
+        features: [H, W, C] blended features (colour when features are RGB), background added.
+        alpha: [H, W] accumulated opacity, sum_k w_k.
+        depth: [H, W] expected depth sum_k w_k z_k (not normalised by alpha).
+        normal: [H, W, 3] sum_k w_k n_k, camera-space normals facing the camera.
+        median_depth: [H, W] z of the splat at which the transmittance crosses 0.5 (0 where empty).
+        distortion: [H, W] depth distortion sum_{i,j} w_i w_j (z_i - z_j)^2 (the squared form the
+            official 2DGS CUDA code uses; order-independent, so exact in one pass), or None unless
+            ``with_distortion``.
+        means2d: [N, 2] projected centres; after ``backward`` its ``.grad`` is the screen-space
+            positional gradient used by 3DGS/2DGS densification (None when nothing needed grad).
+        visible: [N] bool, splats whose footprint touched the image.
+        radii: [N] int32, half of the larger side of the footprint box in pixels (0 when culled).
+    """
+
+    features: Tensor
+    alpha: Tensor
+    depth: Tensor
+    normal: Tensor
+    median_depth: Tensor
+    distortion: Optional[Tensor]
+    means2d: Tensor
+    visible: Tensor
+    radii: Tensor
+
+
+def _check_features(features: Tensor, n: int, what: str) -> None:
+    if not isinstance(features, Tensor) or features.dim() != 2 or features.shape[0] != n:
+        got = tuple(features.shape) if isinstance(features, Tensor) else type(features).__name__
+        raise Trace3DError(f"render: {what} must have shape [N={n}, C], got {got}.")
+    if features.shape[1] < 1:
+        raise Trace3DError(f"render: {what} needs at least one channel.")
+
+
+def render(splats: Splats, camera: Camera, features: Tensor, background: Optional[Tensor] = None,
+           near: float = 0.01, with_distortion: bool = False, backend: Optional[str] = None) -> RenderOutput:
+    """Render splats into ``camera``.
+
+    Differentiable with respect to means, quats, scales, opacities, features and background.
+
+    Args:
+        splats: N splats (activated scales and opacities).
+        camera: the camera (its width, height, K, world_to_camera).
+        features: [N, C] per-splat features (RGB colour, or C up to a few hundred).
+        background: [C] added with the final transmittance, or None for zeros.
+        near: near plane (camera z) for culling centres and ray-plane intersections.
+        with_distortion: also compute ``distortion``.
+        backend: "numba", "reference" or None for the default.
+    Returns:
+        a :class:`RenderOutput`.
+    """
+    n = check_splats(splats)
+    _check_features(features, n, "features")
+    c = features.shape[1]
+    if background is None:
+        background = torch.zeros(c, device=features.device, dtype=features.dtype)
+    if background.shape != (c,):
+        raise Trace3DError(f"render: background must have shape [{c}], got {tuple(background.shape)}.")
+    proj = project(splats, camera, near)
+    if proj.means2d.requires_grad:
+        proj.means2d.retain_grad()
+    name = _backend(backend)
+    if name == "reference":
+        out = render_reference(proj, features, camera.width, camera.height, background, near)
+    else:
+        from .kernels import rasterize
+
+        out = rasterize(proj, features, camera.width, camera.height, background, near)
+    distortion = None
+    if with_distortion:
+        distortion = 2.0 * (out["alpha"] * out["depth2"] - out["depth"] * out["depth"])
+    boxes = torch.as_tensor(proj.boxes, device=proj.depths.device)
+    half = torch.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]).clamp_min(0)
+    radii = torch.where(proj.visible, (half + 1) // 2, torch.zeros_like(half)).to(torch.int32)
+    return RenderOutput(
+        features=out["features"], alpha=out["alpha"], depth=out["depth"], normal=out["normal"],
+        median_depth=out["median_depth"], distortion=distortion, means2d=proj.means2d,
+        visible=proj.visible, radii=radii,
+    )
+
+
+def _check_labels(labels: Tensor, camera: Camera, num_labels: int) -> None:
+    if labels.shape != (camera.height, camera.width):
+        raise Trace3DError(f"trace: labels for camera {camera.name!r} must have shape "
+                           f"[{camera.height}, {camera.width}], got {tuple(labels.shape)}.")
+    if labels.dtype not in (torch.int64, torch.int32, torch.int16, torch.uint8):
+        raise Trace3DError(f"trace: labels for camera {camera.name!r} must be integers, got {labels.dtype}.")
+    if num_labels < 1:
+        raise Trace3DError(f"trace: num_labels must be >= 1, got {num_labels}.")
+    if labels.numel() and int(labels.max()) >= num_labels:
+        raise Trace3DError(f"trace: labels for camera {camera.name!r} reach {int(labels.max())} "
+                           f"but num_labels is {num_labels}.")
+
+
+def trace(splats: Splats, camera: Camera, labels: Tensor, num_labels: int, near: float = 0.01,
+          backend: Optional[str] = None) -> Tensor:
+    """Gaussian Instance Tracing for one view.
+
+    W[k, j] = sum over pixels x with labels[x] == j of w_k(x), the blending weight of splat k at x.
+    Pixels with a negative label are ignored.  Summed over j (all labels, background included)
+    a row is the splat's total visibility in the view, and summed over splats at one pixel it is
+    that pixel's alpha.  It equals d/d f_k[j] of sum_x <onehot(labels[x]), F(x)> where F renders
+    features f (a backward pass with one-hot upstream gradients), which the tests check.
+
+    Args:
+        splats: N splats.
+        camera: the view.
+        labels: [H, W] integer patch labels in 0..num_labels-1 (negative = ignored).
+        num_labels: T.
+    Returns:
+        sparse COO tensor [N, T] (float32, coalesced, no gradient).
+    """
+    n = check_splats(splats)
+    _check_labels(labels, camera, num_labels)
+    name = _backend(backend)
+    with torch.no_grad():
+        proj = project(splats, camera, near)
+        if name == "reference":
+            dense = _trace_by_backward(proj, camera, labels, num_labels, near, "reference")
+            return dense.to_sparse().coalesce()
+        from .kernels import trace_weights
+
+        return trace_weights(proj, camera.width, camera.height, labels, num_labels, near)
+
+
+def trace_by_backward(splats: Splats, camera: Camera, labels: Tensor, num_labels: int, near: float = 0.01,
+                      backend: Optional[str] = None) -> Tensor:
+    """Dense W [N, T] computed as the gradient of sum_x <onehot(labels[x]), F(x)> w.r.t. features.
+
+    The definition of GIT as one backward pass; :func:`trace` must agree with it (tested).
+    """
+    check_splats(splats)
+    _check_labels(labels, camera, num_labels)
+    with torch.no_grad():
+        proj = project(splats, camera, near)
+    return _trace_by_backward(proj, camera, labels, num_labels, near, _backend(backend))
+
+
+def _trace_by_backward(proj: Projected, camera: Camera, labels: Tensor, num_labels: int, near: float,
+                       name: str) -> Tensor:
+    n = proj.depths.shape[0]
+    dev = proj.depths.device
+    dt = proj.ray_transforms.dtype
+    lab = labels.to(device=dev, dtype=torch.int64)
+    onehot = torch.zeros(camera.height, camera.width, num_labels, device=dev, dtype=dt)
+    valid = lab >= 0
+    onehot[valid] = torch.nn.functional.one_hot(lab[valid], num_labels).to(dt)
+    with torch.enable_grad():
+        feats = torch.zeros(n, num_labels, device=dev, dtype=dt, requires_grad=True)
+        bg = torch.zeros(num_labels, device=dev, dtype=dt)
+        if name == "reference":
+            out = render_reference(proj, feats, camera.width, camera.height, bg, near)
+        else:
+            from .kernels import rasterize
+
+            out = rasterize(proj, feats, camera.width, camera.height, bg, near)
+        (grad,) = torch.autograd.grad((out["features"] * onehot).sum(), feats, allow_unused=True)
+    if grad is None:
+        grad = torch.zeros(n, num_labels, device=dev, dtype=dt)
+    return grad
+
+
+def trace_argmax(weights: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Per-view reduction of a trace (the paper's supplementary, "Scalability of GIT").
+
+    Args:
+        weights: [N, T] sparse COO or dense trace weights of one view.
+    Returns:
+        label [N] int64 (argmax over T; -1 where the splat has no weight in this view),
+        probability [N] (max / total; 0 where total is 0), total [N] (sum over T).
+    """
+    if weights.dim() != 2:
+        raise Trace3DError(f"trace_argmax: weights must be [N, T], got {tuple(weights.shape)}.")
+    n = weights.shape[0]
+    dev = weights.device
+    if weights.is_sparse:
+        w = weights.coalesce()
+        rows, cols = w.indices()
+        vals = w.values()
+        total = torch.zeros(n, device=dev, dtype=vals.dtype).index_add_(0, rows, vals)
+        best = torch.zeros(n, device=dev, dtype=vals.dtype).scatter_reduce_(0, rows, vals, "amax", include_self=True)
+        # smallest column attaining the max (deterministic ties)
+        is_best = (vals == best[rows]) & (vals > 0)
+        big = torch.full((n,), weights.shape[1], device=dev, dtype=torch.int64)
+        label = big.scatter_reduce(0, rows[is_best], cols[is_best], "amin", include_self=True)
+    else:
+        total = weights.sum(1)
+        best, label = weights.max(1) if weights.shape[1] else (torch.zeros(n, device=dev), torch.zeros(n, device=dev, dtype=torch.int64))
+    has = (total > 0) & (best > 0)
+    label = torch.where(has, label, torch.full_like(label, -1))
+    prob = torch.where(has, best / total.clamp_min(1e-30), torch.zeros_like(total))
+    return label, prob, total

@@ -1,0 +1,232 @@
+"""Per-Gaussian projection of 2D Gaussian splats (2DGS) into one camera, in plain torch.
+
+Everything here is differentiable with torch autograd; both the dense reference renderer and the
+numba tile kernels consume its output, so the two back ends share one definition of the geometry.
+
+Conventions (see ``/work/shared/notes/2dgs-math.md``): OpenCV camera (x right, y down, z forward),
+pixel centres at integer + 0.5.  A splat k has centre p, rotation R = [t_u | t_v | t_w] from its
+quaternion, scales (s_u, s_v), opacity o.  Its *ray transform* is
+
+    T = K [ s_u t_u^c | s_v t_v^c | p_c ]        (3x3; rows T_x, T_y, T_w)
+
+and the ray through pixel (x, y) meets the splat's plane at disk coordinates (u, v) = (c_0, c_1) / c_2
+with ``c = (x T_w - T_x) x (y T_w - T_y)``.  Expanding the cross product, c is affine in the pixel:
+
+    c = A + x B + y D,   A = T_x x T_y,   B = T_y x T_w,   D = T_w x T_x
+
+so a kernel needs nine coefficients per splat instead of a cross product per pixel.  The third column
+of T is built as ``z * (means2d, 1)`` (which equals ``K p_c``) so that ``means2d`` sits in the autograd
+graph and its gradient is the screen-space positional gradient used by density control.
+
+Low-pass filter: 2DGS clamps sigma = 1/2 min(u^2 + v^2, 2 |pixel - centre|^2); we use the projected
+centre of the splat, ``means2d``, as that centre (the 2DGS CUDA code uses the centre of the projected
+unit ellipse; the two agree for the distant, sub-pixel disks the filter exists for).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..errors import Trace3DError
+from ..scene import Camera
+
+ALPHA_MIN = 1.0 / 255.0  # skip a pair whose alpha is below this
+ALPHA_MAX = 0.99  # clamp alpha
+TRANSMITTANCE_MIN = 1e-4  # stop blending a pixel once the transmittance would fall below this
+FILTER_INV_SQUARE = 2.0  # object-space low-pass filter: 1 / (sqrt(2)/2 px)^2
+BOX_MARGIN = 0.5  # pixels of slack around the analytic footprint (float rounding)
+
+
+class Splats(NamedTuple):
+    """A set of 2D Gaussian splats (activated parameters).
+
+    Attributes:
+        means: [N, 3] world positions.
+        quats: [N, 4] rotations (w, x, y, z); normalised inside.
+        scales: [N, 2] positive tangent scales (s_u, s_v).
+        opacities: [N] opacities in (0, 1).
+    """
+
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    opacities: Tensor
+
+
+@dataclasses.dataclass
+class Projected:
+    """Per-Gaussian quantities in one camera (differentiable tensors except where noted).
+
+    Attributes:
+        ray_transforms: [N, 3, 3] T = K [s_u t_u^c | s_v t_v^c | p_c]; rows T_x, T_y, T_w.
+        coeffs: [N, 9] (A, B, D) with c = A + x B + y D (see the module docstring).
+        means2d: [N, 2] projected centres (pixels); the low-pass filter's centre.
+        normals: [N, 3] camera-space unit normals, facing the camera.
+        depths: [N] camera-space z of the centres (detached; the sort key).
+        opacities: [N] opacities.
+        boxes: [N, 4] int64 numpy (x0, y0, x1, y1), half-open pixel ranges clipped to the image
+            that contain every pixel where the splat can reach alpha >= 1/255; empty when culled.
+        visible: [N] bool, in front of the near plane with a non-empty box inside the image.
+    """
+
+    ray_transforms: Tensor
+    coeffs: Tensor
+    means2d: Tensor
+    normals: Tensor
+    depths: Tensor
+    opacities: Tensor
+    boxes: np.ndarray
+    visible: Tensor
+
+
+def quat_to_rotmat(quats: Tensor) -> Tensor:
+    """Rotation matrices from quaternions.
+
+    Args:
+        quats: [N, 4] (w, x, y, z), any non-zero norm.
+    Returns:
+        [N, 3, 3] rotations whose columns are the splat's axes t_u, t_v, t_w.
+    """
+    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    w, x, y, z = q.unbind(-1)
+    rows = [
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ]
+    return torch.stack(rows, dim=-1).reshape(quats.shape[:-1] + (3, 3))
+
+
+def camera_tensors(camera: Camera, device: torch.device, dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor]:
+    """The camera as tensors: K [3, 3], world-to-camera rotation [3, 3], translation [3]."""
+    K = np.asarray(camera.K, dtype=np.float64)
+    if K.shape != (3, 3) or not np.allclose(K[2], [0.0, 0.0, 1.0]):
+        raise Trace3DError(f"camera {camera.name!r}: the renderer needs K with last row (0, 0, 1), got {K[2].tolist()}.")
+    w2c = np.asarray(camera.world_to_camera, dtype=np.float64)
+    to = dict(device=device, dtype=dtype)
+    return torch.as_tensor(K, **to), torch.as_tensor(w2c[:3, :3], **to), torch.as_tensor(w2c[:3, 3], **to)
+
+
+def check_splats(splats: Splats) -> int:
+    """Validate shapes and dtypes of ``splats``; return N."""
+    n = splats.means.shape[0] if splats.means.dim() == 2 else -1
+    shapes = {"means": (n, 3), "quats": (n, 4), "scales": (n, 2), "opacities": (n,)}
+    for name, shape in shapes.items():
+        t = getattr(splats, name)
+        if not isinstance(t, Tensor) or tuple(t.shape) != shape or n < 0:
+            got = tuple(t.shape) if isinstance(t, Tensor) else type(t).__name__
+            raise Trace3DError(f"render: splats.{name} must have shape {shape} (N from means), got {got}.")
+        if not t.is_floating_point():
+            raise Trace3DError(f"render: splats.{name} must be a floating-point tensor, got {t.dtype}.")
+    return n
+
+
+def project(splats: Splats, camera: Camera, near: float = 0.01) -> Projected:
+    """Project splats into ``camera``.
+
+    Args:
+        splats: N splats.
+        camera: pinhole camera (K with last row (0, 0, 1)).
+        near: splats whose centre has camera z <= near are culled; pixels whose ray meets a splat's
+            plane closer than ``near`` are skipped by the renderers.
+    Returns:
+        a :class:`Projected`; tensors on the device and dtype of ``splats.means``.
+    """
+    check_splats(splats)
+    means = splats.means
+    K, rot_cw, t_cw = camera_tensors(camera, means.device, means.dtype)
+    p_cam = means @ rot_cw.T + t_cw  # [N, 3]
+    z = p_cam[:, 2]
+    in_front = z > near
+    z_safe = torch.where(in_front, z, torch.ones_like(z))
+    axes = rot_cw @ quat_to_rotmat(splats.quats)  # [N, 3, 3] columns t_u^c, t_v^c, t_w^c
+    normal = axes[:, :, 2]
+    facing = (normal * p_cam).sum(-1, keepdim=True) > 0
+    normal = torch.where(facing, -normal, normal)
+    # projected centre; T's third column is K p_c = z (means2d, 1)
+    pix_h = p_cam @ K.T
+    means2d = pix_h[:, :2] / z_safe[:, None]
+    col_u = (axes[:, :, 0] * splats.scales[:, 0:1]) @ K.T
+    col_v = (axes[:, :, 1] * splats.scales[:, 1:2]) @ K.T
+    col_p = torch.cat([means2d * z_safe[:, None], z_safe[:, None]], dim=-1)
+    ray_t = torch.stack([col_u, col_v, col_p], dim=-1)  # [N, 3, 3], rows T_x, T_y, T_w
+    tx, ty, tw = ray_t[:, 0], ray_t[:, 1], ray_t[:, 2]
+    coeffs = torch.cat([torch.linalg.cross(tx, ty), torch.linalg.cross(ty, tw), torch.linalg.cross(tw, tx)], dim=-1)
+
+    boxes = footprint_boxes(ray_t.detach(), means2d.detach(), splats.opacities.detach(), in_front,
+                            camera.width, camera.height)
+    visible = in_front & torch.as_tensor((boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1]),
+                                         device=means.device)
+    return Projected(ray_t, coeffs, means2d, normal, z.detach(), splats.opacities, boxes, visible)
+
+
+def footprint_boxes(ray_t: Tensor, means2d: Tensor, opacities: Tensor, in_front: Tensor,
+                    width: int, height: int) -> np.ndarray:
+    """Pixel boxes that contain every pixel where a splat can reach alpha >= 1/255.
+
+    alpha >= 1/255 needs sigma <= L = ln(255 o).  Either the ray meets the disk of radius
+    r = sqrt(2 L) (bounded exactly by the tangent lines of its projected ellipse, from the dual
+    conic T diag(r^2, r^2, -1) T^T), or the pixel lies within sqrt(L) pixels of the centre (the
+    low-pass filter).  A disk that is not entirely in front of the camera gets the whole image.
+
+    Args:
+        ray_t: [N, 3, 3] ray transforms; means2d: [N, 2]; opacities: [N]; in_front: [N] bool.
+    Returns:
+        [N, 4] int64 (x0, y0, x1, y1), half-open, clipped to the image; x1 <= x0 when culled.
+    """
+    n = ray_t.shape[0]
+    boxes = np.zeros((n, 4), dtype=np.int64)
+    if n == 0:
+        return boxes
+    T = ray_t.cpu().double().numpy()
+    m2d = means2d.cpu().double().numpy()
+    op = np.clip(opacities.cpu().double().numpy(), 0.0, None)
+    ok = in_front.cpu().numpy() & (op > ALPHA_MIN)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        level = np.where(ok, np.log(np.maximum(op, 1e-30) * 255.0), 0.0)
+        r2 = 2.0 * level
+        diag = np.stack([r2, r2, -np.ones_like(r2)], axis=-1)  # [N, 3]
+        dual = np.einsum("nij,nj,nkj->nik", T, diag, T)  # [N, 3, 3]
+        c22 = dual[:, 2, 2]
+        ellipse = c22 < 0
+        lo = np.empty((n, 2))
+        hi = np.empty((n, 2))
+        for axis in range(2):
+            c02 = dual[:, axis, 2]
+            c00 = dual[:, axis, axis]
+            disc = np.sqrt(np.maximum(c02 * c02 - c00 * c22, 0.0))
+            a = (c02 + disc) / c22
+            b = (c02 - disc) / c22
+            lo[:, axis] = np.where(ellipse, np.minimum(a, b), -np.inf)
+            hi[:, axis] = np.where(ellipse, np.maximum(a, b), np.inf)
+        filt = np.sqrt(np.maximum(level, 0.0) / (FILTER_INV_SQUARE / 2.0))
+        lo = np.minimum(lo, m2d - filt[:, None]) - BOX_MARGIN
+        hi = np.maximum(hi, m2d + filt[:, None]) + BOX_MARGIN
+    lo = np.nan_to_num(lo, nan=-np.inf)
+    hi = np.nan_to_num(hi, nan=np.inf)
+    size = np.array([width, height], dtype=np.float64)
+    # pixel i is inside when its centre i + 0.5 lies in [lo, hi]
+    first = np.clip(np.ceil(np.clip(lo - 0.5, -1.0, size + 1.0)), 0, size).astype(np.int64)
+    last = np.clip(np.floor(np.clip(hi - 0.5, -1.0, size + 1.0)) + 1, 0, size).astype(np.int64)
+    boxes[:, 0:2] = first
+    boxes[:, 2:4] = last
+    boxes[~ok] = 0
+    return boxes
+
+
+def pixel_centres(width: int, height: int, device: torch.device, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """Pixel centre coordinates x [H*W], y [H*W] (row-major), at integer + 0.5."""
+    ys, xs = torch.meshgrid(torch.arange(height, device=device, dtype=dtype),
+                            torch.arange(width, device=device, dtype=dtype), indexing="ij")
+    return xs.reshape(-1) + 0.5, ys.reshape(-1) + 0.5
+
+
+def opacity_level(opacity: float) -> float:
+    """ln(255 o): sigma above this gives alpha < 1/255."""
+    return math.log(max(opacity, 1e-30) * 255.0)
