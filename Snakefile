@@ -16,6 +16,9 @@ if not config:
 
 include: "rules/common.smk"
 include: "rules/scene.smk"
+include: "rules/poses.smk"
+include: "rules/masks.smk"
+include: "rules/gaussians.smk"
 include: "rules/report.smk"
 
 

@@ -62,3 +62,20 @@ def scene_kind_args(wildcards):
         return f"synthetic --params {params}"
     params = shlex.quote(step_params(wildcards.scene, "importer"))
     return f"{kind} --source {shlex.quote(cfg['source'])} --params {params}"
+
+
+def mask_args(wildcards):
+    """The `trace3d masks` arguments: the mask source and that source's parameters."""
+    merged = json.loads(step_params(wildcards.scene, "masks"))
+    source = merged.get("source", "simulated")
+    params = shlex.quote(json.dumps(merged.get(source, {}), sort_keys=True))
+    return f"--source {source} --params {params}"
+
+
+def quoted_params(step):
+    """A params function returning the step's parameters as one shell-quoted JSON word."""
+
+    def inner(wildcards):
+        return shlex.quote(step_params(wildcards.scene, step))
+
+    return inner

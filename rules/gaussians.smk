@@ -1,0 +1,24 @@
+# Step 3: fit a 2D Gaussian Splatting scene to the training views (poses from the `poses` step).
+
+
+rule gaussians:
+    input:
+        scene=f"{RESULTS}/{{scene}}/scene",
+        poses=f"{RESULTS}/{{scene}}/poses",
+    output:
+        directory(f"{RESULTS}/{{scene}}/gaussians"),
+    params:
+        p=quoted_params("gaussians"),
+        code=code_version("scene.py", "render", "gaussians.py", "train.py", "losses.py", "pointcloud.py"),
+    threads: 2
+    resources:
+        mem_mb=8000,
+    log:
+        f"{RESULTS}/logs/{{scene}}/gaussians.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{scene}}/gaussians.tsv"
+    conda:
+        ENV
+    shell:
+        "trace3d gaussians --scene {input.scene} --poses {input.poses} --out {output}"
+        " --params {params.p} > {log} 2>&1"

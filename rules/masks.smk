@@ -1,0 +1,39 @@
+# 2D masks per view (simulated from ground truth | the user's files | SAM), then disjoint patches.
+
+
+rule masks:
+    input:
+        f"{RESULTS}/{{scene}}/scene",
+    output:
+        directory(f"{RESULTS}/{{scene}}/masks"),
+    params:
+        args=mask_args,
+        code=code_version("scene.py", "masks"),
+    log:
+        f"{RESULTS}/logs/{{scene}}/masks.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{scene}}/masks.tsv"
+    conda:
+        ENV
+    shell:
+        "trace3d masks --scene {input} --out {output} {params.args} > {log} 2>&1"
+
+
+rule patches:
+    input:
+        scene=f"{RESULTS}/{{scene}}/scene",
+        masks=f"{RESULTS}/{{scene}}/masks",
+    output:
+        directory(f"{RESULTS}/{{scene}}/patches"),
+    params:
+        p=quoted_params("patches"),
+        code=code_version("scene.py", "masks"),
+    log:
+        f"{RESULTS}/logs/{{scene}}/patches.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{scene}}/patches.tsv"
+    conda:
+        ENV
+    shell:
+        "trace3d patches --scene {input.scene} --masks {input.masks} --out {output}"
+        " --params {params.p} > {log} 2>&1"

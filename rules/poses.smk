@@ -1,0 +1,20 @@
+# Step 2: camera poses by pycolmap structure-from-motion, or the data set's own (`poses: {mode: dataset}`).
+
+
+rule poses:
+    input:
+        f"{RESULTS}/{{scene}}/scene",
+    output:
+        directory(f"{RESULTS}/{{scene}}/poses"),
+    params:
+        p=quoted_params("poses"),
+        code=code_version("scene.py", "sfm.py", "pointcloud.py"),
+    threads: 2
+    log:
+        f"{RESULTS}/logs/{{scene}}/poses.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{scene}}/poses.tsv"
+    conda:
+        ENV
+    shell:
+        "trace3d poses --scene {input} --out {output} --params {params.p} > {log} 2>&1"
