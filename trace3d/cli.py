@@ -34,6 +34,7 @@ def _cmd_scene(args: argparse.Namespace) -> None:
     from .params import load_params_arg
 
     params = load_params_arg(args.params)
+    source = _need_source(args) if args.kind != "synthetic" else None
     out = Path(args.out)
     with atomic_dir(out) as tmp:
         if args.kind == "synthetic":
@@ -43,21 +44,21 @@ def _cmd_scene(args: argparse.Namespace) -> None:
         elif args.kind == "replica":
             from .datasets import replica
 
-            replica.import_replica(_need_source(args), tmp, replica.params_from(params))
+            replica.import_replica(source, tmp, replica.params_from(params))
         elif args.kind == "nvos":
             from .datasets import llff
 
-            llff.import_nvos(_need_source(args), tmp, llff.params_from(params))
+            llff.import_nvos(source, tmp, llff.params_from(params))
         elif args.kind == "llff":
             from .datasets import llff
 
-            llff.import_llff(_need_source(args), tmp, llff.params_from(params))
+            llff.import_llff(source, tmp, llff.params_from(params))
         elif args.kind == "canonical":
             from .scene import Scene
 
             import shutil
 
-            scene = Scene.read(_need_source(args))
+            scene = Scene.read(source)
             shutil.copytree(scene.root, tmp, dirs_exist_ok=True)
         from .preview import scene_preview
         from .scene import Scene
@@ -74,22 +75,24 @@ def _need_source(args: argparse.Namespace) -> Path:
 
 def _cmd_masks(args: argparse.Namespace) -> None:
     from .io import atomic_dir
-    from .masks import run_masks
     from .params import load_params_arg
     from .scene import Scene
 
     scene = Scene.read(args.scene)
+    from .masks import run_masks
+
     with atomic_dir(args.out) as tmp:
         run_masks(scene, tmp, args.source, load_params_arg(args.params))
 
 
 def _cmd_patches(args: argparse.Namespace) -> None:
     from .io import atomic_dir
-    from .masks.patches import run_patches
     from .params import load_params_arg
     from .scene import Scene
 
     scene = Scene.read(args.scene)
+    from .masks.patches import run_patches
+
     with atomic_dir(args.out) as tmp:
         run_patches(scene, Path(args.masks), tmp, load_params_arg(args.params))
 
@@ -98,9 +101,10 @@ def _cmd_poses(args: argparse.Namespace) -> None:
     from .io import atomic_dir
     from .params import load_params_arg
     from .scene import Scene
-    from .sfm import run_poses
 
     scene = Scene.read(args.scene)
+    from .sfm import run_poses
+
     with atomic_dir(args.out) as tmp:
         run_poses(scene, tmp, load_params_arg(args.params))
 
@@ -109,9 +113,10 @@ def _cmd_gaussians(args: argparse.Namespace) -> None:
     from .io import atomic_dir
     from .params import load_params_arg
     from .scene import Scene
-    from .train import run_gaussians
 
     scene = Scene.read(args.scene)
+    from .train import run_gaussians
+
     with atomic_dir(args.out) as tmp:
         run_gaussians(scene, Path(args.poses) if args.poses else None, tmp, load_params_arg(args.params))
 
