@@ -1,0 +1,275 @@
+"""Tests of trace3d.gaussians: SH evaluation, rotations, initialisations and the PLY round trip."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from trace3d.errors import SceneFormatError, Trace3DError
+from trace3d.gaussians import (
+    SH_C0,
+    GaussianModel,
+    eval_sh,
+    depth_points,
+    init_from_depth,
+    init_from_points,
+    init_random,
+    nearest_neighbour_scales,
+    num_sh_rest,
+    quat_to_rotmat,
+    quats_aligning_z_to,
+    rgb_to_sh,
+)
+from trace3d.scene import Camera, Scene, write_cameras, write_frame
+
+
+def random_model(n: int = 50, degree: int = 3, seed: int = 0) -> GaussianModel:
+    g = torch.Generator().manual_seed(seed)
+    return GaussianModel(
+        means=torch.randn(n, 3, generator=g),
+        quats=torch.randn(n, 4, generator=g),
+        log_scales=torch.randn(n, 2, generator=g) - 2,
+        opacity_logits=torch.randn(n, generator=g),
+        sh_dc=torch.randn(n, 1, 3, generator=g),
+        sh_rest=torch.randn(n, num_sh_rest(degree), 3, generator=g) * 0.1,
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# SH
+# ----------------------------------------------------------------------------------------------
+
+
+def _sh_reference(degree: int, coeffs: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Real SH from the explicit Cartesian polynomials (normalisation constants written out)."""
+    x, y, z = d
+    basis = [0.5 * math.sqrt(1 / math.pi)]
+    if degree >= 1:
+        c = math.sqrt(3 / (4 * math.pi))
+        basis += [-c * y, c * z, -c * x]
+    if degree >= 2:
+        basis += [
+            0.5 * math.sqrt(15 / math.pi) * x * y,
+            -0.5 * math.sqrt(15 / math.pi) * y * z,
+            0.25 * math.sqrt(5 / math.pi) * (2 * z * z - x * x - y * y),
+            -0.5 * math.sqrt(15 / math.pi) * x * z,
+            0.25 * math.sqrt(15 / math.pi) * (x * x - y * y),
+        ]
+    if degree >= 3:
+        basis += [
+            -0.25 * math.sqrt(35 / (2 * math.pi)) * y * (3 * x * x - y * y),
+            0.5 * math.sqrt(105 / math.pi) * x * y * z,
+            -0.25 * math.sqrt(21 / (2 * math.pi)) * y * (4 * z * z - x * x - y * y),
+            0.25 * math.sqrt(7 / math.pi) * z * (2 * z * z - 3 * x * x - 3 * y * y),
+            -0.25 * math.sqrt(21 / (2 * math.pi)) * x * (4 * z * z - x * x - y * y),
+            0.25 * math.sqrt(105 / math.pi) * z * (x * x - y * y),
+            -0.25 * math.sqrt(35 / (2 * math.pi)) * x * (x * x - 3 * y * y),
+        ]
+    basis = np.array(basis)
+    return basis @ coeffs[: len(basis)]
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_eval_sh_matches_explicit_polynomials(degree):
+    g = torch.Generator().manual_seed(degree)
+    coeffs = torch.randn(20, 16, 3, generator=g, dtype=torch.float64)
+    dirs = torch.nn.functional.normalize(torch.randn(20, 3, generator=g, dtype=torch.float64), dim=-1)
+    got = eval_sh(degree, coeffs, dirs).numpy()
+    for i in range(20):
+        np.testing.assert_allclose(got[i], _sh_reference(degree, coeffs[i].numpy(), dirs[i].numpy()), atol=1e-12)
+
+
+def test_colors_dc_roundtrip_and_degree_control():
+    rgb = torch.tensor([[0.1, 0.5, 0.9], [1.0, 0.0, 0.3]])
+    model = init_from_points(torch.tensor([[0.0, 0, 0], [1.0, 0, 0]]), rgb, sh_degree=2)
+    torch.testing.assert_close(model.colors(torch.zeros(3) + 5), rgb, atol=1e-6, rtol=0)
+    model.sh_rest[:] = 1.0
+    center = torch.tensor([0.0, 0.0, -3.0])
+    assert torch.allclose(model.colors(center, degree=0), rgb, atol=1e-6)
+    assert not torch.allclose(model.colors(center, degree=2), rgb, atol=1e-3)
+    assert model.sh_degree == 2
+
+
+# ----------------------------------------------------------------------------------------------
+# Rotations
+# ----------------------------------------------------------------------------------------------
+
+
+def test_quat_to_rotmat_is_rotation_and_matches_axis_angle():
+    q = torch.nn.functional.normalize(torch.randn(30, 4, dtype=torch.float64), dim=-1)
+    R = quat_to_rotmat(q)
+    eye = torch.eye(3, dtype=torch.float64).expand(30, 3, 3)
+    torch.testing.assert_close(R @ R.transpose(1, 2), eye)
+    torch.testing.assert_close(torch.linalg.det(R), torch.ones(30, dtype=torch.float64))
+    # 90 degrees about z maps x to y
+    half = math.pi / 4
+    Rz = quat_to_rotmat(torch.tensor([[math.cos(half), 0, 0, math.sin(half)]], dtype=torch.float64))[0]
+    torch.testing.assert_close(Rz @ torch.tensor([1.0, 0, 0], dtype=torch.float64), torch.tensor([0.0, 1, 0], dtype=torch.float64))
+
+
+def test_quats_aligning_z_to_normals():
+    normals = torch.nn.functional.normalize(torch.randn(40, 3, dtype=torch.float64), dim=-1)
+    normals = torch.cat([normals, torch.tensor([[0.0, 0, -1], [0.0, 0, 1]], dtype=torch.float64)])
+    R = quat_to_rotmat(quats_aligning_z_to(normals))
+    torch.testing.assert_close(R[:, :, 2], normals, atol=1e-9, rtol=0)
+
+
+# ----------------------------------------------------------------------------------------------
+# Initialisation
+# ----------------------------------------------------------------------------------------------
+
+
+def test_nearest_neighbour_scales_brute_force():
+    g = torch.Generator().manual_seed(3)
+    pts = torch.randn(57, 3, generator=g)
+    got = nearest_neighbour_scales(pts, k=3, chunk_elements=200)  # forces several chunks
+    d2 = ((pts[:, None] - pts[None]) ** 2).sum(-1)
+    d2.fill_diagonal_(float("inf"))
+    expected = d2.sort(dim=1).values[:, :3].mean(1).sqrt()
+    torch.testing.assert_close(got, expected, atol=1e-5, rtol=1e-5)
+
+
+def test_init_from_points_grid_scales_colours_and_opacity():
+    xs = torch.arange(5, dtype=torch.float32) * 0.2
+    grid = torch.stack(torch.meshgrid(xs, xs, indexing="ij"), -1).reshape(-1, 2)
+    pts = torch.cat([grid, torch.zeros(25, 1)], 1)
+    colors = np.full((25, 3), 255, dtype=np.uint8)
+    colors[:, 1] = 0
+    model = init_from_points(pts, colors, sh_degree=1, opacity=0.1, seed=1)
+    assert len(model) == 25
+    # 3 nearest neighbours: at 0.2 for edge and interior points; 0.2, 0.2, 0.2 sqrt(2) at the corners
+    expected = torch.full((25,), 0.2)
+    expected[[0, 4, 20, 24]] = math.sqrt((0.04 + 0.04 + 0.08) / 3)
+    torch.testing.assert_close(model.scales, expected[:, None].expand(25, 2), atol=1e-5, rtol=0)
+    torch.testing.assert_close(model.opacities, torch.full((25,), 0.1))
+    torch.testing.assert_close(model.colors(torch.zeros(3) + 10), torch.tensor([1.0, 0.0, 1.0]).expand(25, 3), atol=1e-6, rtol=0)
+    assert model.sh_rest.shape == (25, 3, 3)
+    # deterministic from the seed
+    again = init_from_points(pts, colors, sh_degree=1, opacity=0.1, seed=1)
+    torch.testing.assert_close(again.quats, model.quats)
+    other = init_from_points(pts, colors, sh_degree=1, opacity=0.1, seed=2)
+    assert not torch.allclose(other.quats, model.quats)
+
+
+def test_init_from_points_rejects_bad_input():
+    with pytest.raises(Trace3DError):
+        init_from_points(np.zeros((0, 3)), np.zeros((0, 3)))
+    with pytest.raises(Trace3DError):
+        init_from_points(np.zeros((4, 3)), np.zeros((3, 3)))
+
+
+def test_init_random_inside_bounds():
+    model = init_random(500, np.array([-1.0, 0, 2]), np.array([1.0, 0.5, 3]), sh_degree=0, seed=4)
+    assert len(model) == 500 and model.sh_rest.shape == (500, 0, 3)
+    lo, hi = model.means.min(0).values, model.means.max(0).values
+    assert (lo >= torch.tensor([-1.0, 0, 2])).all() and (hi <= torch.tensor([1.0, 0.5, 3])).all()
+    assert (hi - lo > torch.tensor([1.8, 0.45, 0.9])).all()
+    with pytest.raises(Trace3DError):
+        init_random(10, np.zeros(3), np.zeros(3))
+
+
+def _plane_scene(tmp_path, depth_value=2.0, width=16, height=12):
+    """Two cameras facing a fronto-parallel plane at z = depth_value (world = camera 0 frame)."""
+    K = np.array([[10.0, 0, width / 2], [0, 10.0, height / 2], [0, 0, 1]])
+    cams = []
+    for i, shift in enumerate([0.0, 0.3]):
+        w2c = np.eye(4)
+        w2c[0, 3] = -shift  # camera centre at x = shift
+        cams.append(Camera(f"f{i}", "train", width, height, K, w2c))
+        rgb = np.zeros((height, width, 3), np.uint8)
+        rgb[..., 0] = 200
+        depth = np.full((height, width), depth_value)
+        depth[0, 0] = 0.0  # invalid pixel
+        write_frame(tmp_path, f"f{i}", rgb, depth=depth)
+    write_cameras(tmp_path, cams)
+    return Scene.read(tmp_path)
+
+
+def test_init_from_depth_back_projects_onto_the_plane(tmp_path):
+    scene = _plane_scene(tmp_path)
+    model = init_from_depth(scene, stride=2, max_points=None, sh_degree=0, seed=0)
+    assert len(model) == 2 * 6 * 8
+    torch.testing.assert_close(model.means[:, 2], torch.full((len(model),), 2.0))
+    # depth normals face the camera (-z) away from the image border, where they are undefined (0)
+    points, colors, normals = depth_points(scene, stride=2, max_points=None, seed=0)
+    torch.testing.assert_close(points, model.means)
+    defined = normals.norm(dim=-1) > 0.5
+    assert int(defined.sum()) == 2 * 5 * 7  # rows 1..9, columns 1..13 of the stride-2 grid
+    torch.testing.assert_close(normals[defined], torch.tensor([0.0, 0.0, -1.0]).expand(70, 3), atol=1e-6, rtol=0)
+    # the disks lie in the plane there
+    torch.testing.assert_close(model.normals[defined], normals[defined], atol=1e-5, rtol=0)
+    limited = init_from_depth(scene, stride=1, max_points=30, sh_degree=0, seed=0)
+    assert len(limited) == 30
+
+
+def test_init_from_depth_without_depth_raises(tmp_path):
+    K = np.array([[10.0, 0, 4], [0, 10.0, 3], [0, 0, 1]])
+    write_frame(tmp_path, "a", np.zeros((6, 8, 3), np.uint8))
+    write_cameras(tmp_path, [Camera("a", "train", 8, 6, K, np.eye(4))])
+    with pytest.raises(Trace3DError, match="depth"):
+        init_from_depth(Scene.read(tmp_path))
+
+
+# ----------------------------------------------------------------------------------------------
+# PLY
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("degree", [0, 3])
+def test_ply_round_trip(tmp_path, degree):
+    model = random_model(37, degree)
+    path = tmp_path / "pc.ply"
+    model.write_ply(path)
+    back = GaussianModel.read_ply(path)
+    for name in GaussianModel.PARAM_NAMES:
+        torch.testing.assert_close(getattr(back, name), getattr(model, name).float(), rtol=0, atol=0)
+    # header: the standard attribute order, binary little endian
+    header = path.read_bytes().split(b"end_header\n")[0].decode()
+    props = [line.split()[-1] for line in header.splitlines() if line.startswith("property")]
+    k = num_sh_rest(degree)
+    assert props[:9] == ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+    assert props[9 : 9 + 3 * k] == [f"f_rest_{i}" for i in range(3 * k)]
+    assert props[9 + 3 * k :] == ["opacity", "scale_0", "scale_1", "rot_0", "rot_1", "rot_2", "rot_3"]
+    assert "format binary_little_endian 1.0" in header
+
+
+def test_ply_f_rest_is_channel_major(tmp_path):
+    model = random_model(2, 1)
+    model.sh_rest.zero_()
+    model.sh_rest[0, 2, 0] = 7.0  # third red coefficient -> f_rest_2 (red block first)
+    model.sh_rest[0, 0, 1] = 9.0  # first green coefficient -> f_rest_3
+    path = tmp_path / "pc.ply"
+    model.write_ply(path)
+    raw = path.read_bytes()
+    body = raw[raw.index(b"end_header\n") + len(b"end_header\n") :]
+    row = np.frombuffer(body, dtype="<f4").reshape(2, -1)[0]
+    assert row[9 + 2] == 7.0 and row[9 + 3] == 9.0
+
+
+def test_read_ply_errors(tmp_path):
+    with pytest.raises(SceneFormatError, match="missing"):
+        GaussianModel.read_ply(tmp_path / "nope.ply")
+    bad = tmp_path / "bad.ply"
+    bad.write_bytes(b"not a ply")
+    with pytest.raises(SceneFormatError, match="not a PLY"):
+        GaussianModel.read_ply(bad)
+    model = random_model(10, 0)
+    path = tmp_path / "t.ply"
+    model.write_ply(path)
+    path.write_bytes(path.read_bytes()[:-20])
+    with pytest.raises(SceneFormatError, match="truncated"):
+        GaussianModel.read_ply(path)
+    # missing a required attribute
+    header = b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nend_header\n"
+    only_x = tmp_path / "x.ply"
+    only_x.write_bytes(header + np.zeros(1, "<f4").tobytes())
+    with pytest.raises(SceneFormatError, match="lacks"):
+        GaussianModel.read_ply(only_x)
+
+
+def test_rgb_to_sh_constant():
+    assert float(rgb_to_sh(torch.tensor(0.5))) == 0.0
+    assert abs(float(rgb_to_sh(torch.tensor(1.0))) * SH_C0 - 0.5) < 1e-7

@@ -1,0 +1,167 @@
+"""Image losses and metrics of the 2DGS fit (pure torch, differentiable).
+
+Images are ``[H, W, C]`` tensors (channels last, as the renderer returns them) with values in
+[0, 1]; batched helpers accept ``[B, H, W, C]``.
+
+- :func:`ssim`: structural similarity with an 11x11 Gaussian window (sigma 1.5), the 3DGS/2DGS
+  training loss formulation (zero-padded "same" convolution, constants C1 = 0.01^2, C2 = 0.03^2).
+- :func:`photometric_loss`: ``(1 - lambda_dssim) * L1 + lambda_dssim * (1 - SSIM)`` (2DGS: 0.2).
+- :func:`depth_to_points` / :func:`depth_to_normal`: the surface normal of a depth map by central
+  finite differences of its back-projected points, in camera space, facing the camera.
+- :func:`normal_consistency_loss`: the 2DGS regulariser ``mean(1 - <n_rendered, alpha * N_depth>)``.
+- :func:`psnr`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+SSIM_C1 = 0.01**2
+SSIM_C2 = 0.03**2
+
+
+def gaussian_window(size: int = 11, sigma: float = 1.5, dtype=torch.float32, device=None) -> torch.Tensor:
+    """[size, size] normalised 2D Gaussian window (outer product of the 1D window)."""
+    coords = torch.arange(size, dtype=torch.float64) - (size - 1) / 2.0
+    g = torch.exp(-(coords**2) / (2.0 * sigma**2))
+    g = g / g.sum()
+    return torch.outer(g, g).to(dtype=dtype, device=device)
+
+
+def _to_bchw(image: torch.Tensor) -> torch.Tensor:
+    if image.ndim == 3:
+        return image.permute(2, 0, 1)[None]
+    if image.ndim == 4:
+        return image.permute(0, 3, 1, 2)
+    raise ValueError(f"expected an image [H, W, C] or a batch [B, H, W, C], got shape {tuple(image.shape)}")
+
+
+def ssim_map(
+    image: torch.Tensor, target: torch.Tensor, window_size: int = 11, sigma: float = 1.5
+) -> torch.Tensor:
+    """Per-pixel SSIM.
+
+    Args:
+        image, target: [H, W, C] or [B, H, W, C].
+    Returns:
+        [B, C, H, W] SSIM values (B = 1 for unbatched input).
+    """
+    if image.shape != target.shape:
+        raise ValueError(f"ssim: shapes differ, {tuple(image.shape)} vs {tuple(target.shape)}")
+    x = _to_bchw(image)
+    y = _to_bchw(target)
+    channels = x.shape[1]
+    window = gaussian_window(window_size, sigma, x.dtype, x.device)
+    window = window.expand(channels, 1, window_size, window_size).contiguous()
+    pad = window_size // 2
+
+    def blur(t: torch.Tensor) -> torch.Tensor:
+        return F.conv2d(t, window, padding=pad, groups=channels)
+
+    mu_x = blur(x)
+    mu_y = blur(y)
+    mu_x2, mu_y2, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
+    sigma_x2 = blur(x * x) - mu_x2
+    sigma_y2 = blur(y * y) - mu_y2
+    sigma_xy = blur(x * y) - mu_xy
+    numerator = (2.0 * mu_xy + SSIM_C1) * (2.0 * sigma_xy + SSIM_C2)
+    denominator = (mu_x2 + mu_y2 + SSIM_C1) * (sigma_x2 + sigma_y2 + SSIM_C2)
+    return numerator / denominator
+
+
+def ssim(image: torch.Tensor, target: torch.Tensor, window_size: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Mean SSIM (scalar) of ``image`` against ``target``, both [H, W, C] or [B, H, W, C]."""
+    return ssim_map(image, target, window_size, sigma).mean()
+
+
+def l1_loss(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean absolute error (scalar)."""
+    return (image - target).abs().mean()
+
+
+def photometric_loss(
+    image: torch.Tensor, target: torch.Tensor, lambda_dssim: float = 0.2
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The 2DGS colour loss ``(1 - lambda) * L1 + lambda * (1 - SSIM)``.
+
+    Args:
+        image, target: [H, W, C].
+    Returns:
+        (loss, l1, ssim) scalars.
+    """
+    l1 = l1_loss(image, target)
+    s = ssim(image, target)
+    return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - s), l1, s
+
+
+def psnr(image: torch.Tensor, target: torch.Tensor) -> float:
+    """Peak signal-to-noise ratio in dB of images in [0, 1] (``inf`` for identical images)."""
+    mse = float(((image.detach().double() - target.detach().double()) ** 2).mean())
+    if mse <= 0.0:
+        return math.inf
+    return -10.0 * math.log10(mse)
+
+
+def depth_to_points(depth: torch.Tensor, K: np.ndarray | torch.Tensor) -> torch.Tensor:
+    """Back-project a depth map (camera z) to camera-space points.
+
+    Args:
+        depth: [H, W] depth along the optical axis.
+        K: [3, 3] intrinsics (pixel centres at +0.5).
+    Returns:
+        [H, W, 3] points in camera space (OpenCV: x right, y down, z forward).
+    """
+    height, width = depth.shape
+    K = torch.as_tensor(np.asarray(K) if not torch.is_tensor(K) else K, dtype=depth.dtype, device=depth.device)
+    xs = torch.arange(width, dtype=depth.dtype, device=depth.device) + 0.5
+    ys = torch.arange(height, dtype=depth.dtype, device=depth.device) + 0.5
+    grid_y, grid_x = torch.meshgrid(ys, xs, indexing="ij")
+    # K^-1 (x, y, 1) for a general upper-triangular K (with skew).
+    fx, fy, cx, cy, skew = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
+    ray_y = (grid_y - cy) / fy
+    ray_x = (grid_x - cx - skew * ray_y) / fx
+    rays = torch.stack([ray_x, ray_y, torch.ones_like(ray_x)], dim=-1)
+    return rays * depth[..., None]
+
+
+def depth_to_normal(depth: torch.Tensor, K: np.ndarray | torch.Tensor) -> torch.Tensor:
+    """Surface normal of a depth map by central finite differences, in camera space.
+
+    The normal is ``normalize(dP/dy x dP/dx)`` of the back-projected points P, which faces the camera
+    (negative z for a fronto-parallel plane), matching the renderer's normal convention. The
+    one-pixel border, where central differences are undefined, is zero.
+
+    Args:
+        depth: [H, W] depth along the optical axis.
+        K: [3, 3] intrinsics.
+    Returns:
+        [H, W, 3] unit normals (zero on the border).
+    """
+    points = depth_to_points(depth, K)
+    d_dx = points[1:-1, 2:] - points[1:-1, :-2]
+    d_dy = points[2:, 1:-1] - points[:-2, 1:-1]
+    normal = F.normalize(torch.cross(d_dy, d_dx, dim=-1), dim=-1)
+    return F.pad(normal.permute(2, 0, 1), (1, 1, 1, 1)).permute(1, 2, 0)
+
+
+def normal_consistency_loss(
+    rendered_normal: torch.Tensor, surface_normal: torch.Tensor, alpha: torch.Tensor
+) -> torch.Tensor:
+    """The 2DGS normal-consistency term ``mean_x (1 - <n_rendered(x), alpha(x) N_depth(x)>)``.
+
+    The rendered normal is the alpha-weighted sum of splat normals (not renormalised); the depth
+    normal is weighted by the detached alpha, as in 2DGS.
+
+    Args:
+        rendered_normal: [H, W, 3] camera space.
+        surface_normal: [H, W, 3] unit normals from the depth map (camera space).
+        alpha: [H, W] accumulated opacity.
+    Returns:
+        scalar loss.
+    """
+    weighted = surface_normal * alpha.detach()[..., None]
+    return (1.0 - (rendered_normal * weighted).sum(dim=-1)).mean()
