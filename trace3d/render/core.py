@@ -21,7 +21,7 @@ from .reference import render_reference
 log = logging.getLogger(__name__)
 
 BACKENDS = ("numba", "reference")
-_default_backend = "reference"  # switched to "numba" once the kernels land
+_default_backend = "numba"
 
 
 def set_default_backend(name: str) -> None:
@@ -113,7 +113,9 @@ def render(splats: Splats, camera: Camera, features: Tensor, background: Optiona
         out = rasterize(proj, features, camera.width, camera.height, background, near)
     distortion = None
     if with_distortion:
-        distortion = 2.0 * (out["alpha"] * out["depth2"] - out["depth"] * out["depth"])
+        # sum_{i,j} w_i w_j (z_i - z_j)^2 = 2 (W S2 - S1^2) with depths taken relative to depth_ref
+        centred = out["depth"] - out["alpha"] * out["depth_ref"].detach()
+        distortion = 2.0 * (out["alpha"] * out["depth2"] - centred * centred)
     boxes = torch.as_tensor(proj.boxes, device=proj.depths.device)
     half = torch.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]).clamp_min(0)
     radii = torch.where(proj.visible, (half + 1) // 2, torch.zeros_like(half)).to(torch.int32)

@@ -26,14 +26,15 @@ def _blend_chunk(coeffs: Tensor, tw: Tensor, means2d: Tensor, opacities: Tensor,
         coeffs: [M, 9]; tw: [M, 3] (T_w rows); means2d: [M, 2]; opacities: [M]; normals: [M, 3];
         features: [M, C]; xs, ys: [P] pixel centres.
     Returns:
-        features [P, C], alpha [P], depth [P], normal [P, 3], depth2 [P] (sum w z^2),
-        median_depth [P], final transmittance [P].
+        features [P, C], alpha [P], depth [P], normal [P, 3], depth2 [P] (sum w (z - z_ref)^2),
+        z_ref [P] (depth of the first blended splat, 0 if none), median_depth [P], final transmittance [P].
     """
     x = xs[None, :]
     y = ys[None, :]
-    c0 = coeffs[:, 0:1] + coeffs[:, 3:4] * x + coeffs[:, 6:7] * y  # [M, P]
-    c1 = coeffs[:, 1:2] + coeffs[:, 4:5] * x + coeffs[:, 7:8] * y
-    c2 = coeffs[:, 2:3] + coeffs[:, 5:6] * x + coeffs[:, 8:9] * y
+    # same operation order as the kernels: (A + y D) + x B
+    c0 = (coeffs[:, 0:1] + coeffs[:, 6:7] * y) + coeffs[:, 3:4] * x  # [M, P]
+    c1 = (coeffs[:, 1:2] + coeffs[:, 7:8] * y) + coeffs[:, 4:5] * x
+    c2 = (coeffs[:, 2:3] + coeffs[:, 8:9] * y) + coeffs[:, 5:6] * x
     nonparallel = c2 != 0
     c2 = torch.where(nonparallel, c2, torch.ones_like(c2))
     u = c0 / c2
@@ -44,7 +45,9 @@ def _blend_chunk(coeffs: Tensor, tw: Tensor, means2d: Tensor, opacities: Tensor,
     sigma_filter = 0.5 * FILTER_INV_SQUARE * (dx * dx + dy * dy)
     sigma = torch.minimum(sigma_disk, sigma_filter)
     alpha = (opacities[:, None] * torch.exp(-sigma)).clamp(max=ALPHA_MAX)
-    z = u * tw[:, 0:1] + v * tw[:, 1:2] + tw[:, 2:3]
+    # 2DGS: the plane intersection's depth where the disk term wins, the centre's where the filter does
+    use_disk = sigma_disk <= sigma_filter
+    z = torch.where(use_disk, u * tw[:, 0:1] + v * tw[:, 1:2] + tw[:, 2:3], tw[:, 2:3].expand_as(u))
     keep = nonparallel & (alpha >= ALPHA_MIN) & (z > near)
     alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
     # a splat is blended while the transmittance after it stays >= 1e-4
@@ -59,7 +62,14 @@ def _blend_chunk(coeffs: Tensor, tw: Tensor, means2d: Tensor, opacities: Tensor,
     feat = w.T @ features
     alpha_px = w.sum(0)
     depth = (w * z).sum(0)
-    depth2 = (w * z * z).sum(0)
+    # distortion sums relative to the depth of the pixel's first blended splat (well conditioned)
+    blended_any = alpha > 0
+    m = alpha.shape[0]
+    first = torch.where(blended_any, torch.arange(m, 0, -1, device=xs.device)[:, None], 0).argmax(0) if m else None
+    ref = z.detach().gather(0, first[None, :])[0] if m else torch.zeros_like(xs)
+    ref = torch.where(blended_any.any(0), ref, torch.zeros_like(ref)) if m else ref
+    dz = z - ref[None, :]
+    depth2 = (w * dz * dz).sum(0)
     normal = w.T @ normals
     # median depth: z of the last blended splat whose transmittance before it exceeds 0.5
     is_median = (alpha > 0) & (before > 0.5)
@@ -69,7 +79,7 @@ def _blend_chunk(coeffs: Tensor, tw: Tensor, means2d: Tensor, opacities: Tensor,
     has = last > 0
     gathered = z.gather(0, (last - 1).clamp_min(0)[None, :])[0] if m else torch.zeros_like(xs)
     median = torch.where(has, gathered, torch.zeros_like(gathered))
-    return feat, alpha_px, depth, normal, depth2, median, final_t
+    return feat, alpha_px, depth, normal, depth2, ref, median, final_t
 
 
 def render_reference(proj: Projected, features: Tensor, width: int, height: int, background: Tensor,
@@ -81,8 +91,8 @@ def render_reference(proj: Projected, features: Tensor, width: int, height: int,
         features: [N, C].
         background: [C].
     Returns:
-        dict with features [H, W, C] (background added), alpha, depth, depth2 (sum w z^2),
-        median_depth [H, W], normal [H, W, 3].
+        dict with features [H, W, C] (background added), alpha, depth, depth2 (sum w (z - depth_ref)^2),
+        depth_ref (depth of each pixel's first blended splat), median_depth [H, W], normal [H, W, 3].
     """
     dev, dt = features.device, features.dtype
     keep = proj.depths > near
@@ -100,7 +110,7 @@ def render_reference(proj: Projected, features: Tensor, width: int, height: int,
             outs.append(checkpoint(_blend_chunk, *args, cx, cy, near, use_reentrant=False))
         else:
             outs.append(_blend_chunk(*args, cx, cy, near))
-    feat, alpha, depth, normal, depth2, median, final_t = (torch.cat(parts, 0) for parts in zip(*outs))
+    feat, alpha, depth, normal, depth2, ref, median, final_t = (torch.cat(parts, 0) for parts in zip(*outs))
     feat = feat + final_t[:, None] * background[None, :]
     c = features.shape[1]
     return {
@@ -108,6 +118,7 @@ def render_reference(proj: Projected, features: Tensor, width: int, height: int,
         "alpha": alpha.reshape(height, width),
         "depth": depth.reshape(height, width),
         "depth2": depth2.reshape(height, width),
+        "depth_ref": ref.reshape(height, width),
         "normal": normal.reshape(height, width, 3),
         "median_depth": median.reshape(height, width),
     }

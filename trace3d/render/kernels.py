@@ -1,0 +1,736 @@
+"""CPU tile kernels (numba) for 2DGS blending, their hand-written backward, and GIT tracing.
+
+Kernel boundary (small on purpose, so that a CUDA back end can slot in behind it): per splat the
+kernels read
+
+    geom [N, 16] float32: A (3), B (3), D (3) with c = A + x B + y D; T_w (3); means2d (2);
+                          opacity (1); level = ln(255 o) + slack (1, a conservative skip test)
+    vals [N, K]  float32: per-splat constant channels (features, then the normal)
+
+and produce per pixel the blended channels [H, W, K], sum w z, sum w z^2, the final transmittance
+and the median depth.  The backward returns gradients with respect to ``geom``'s first 15 columns
+and ``vals``; autograd carries them back through the torch projection to the 3D parameters.
+
+Scheme (as in the CUDA rasterizers): splats are binned to 16x16 tiles (each tile's list in
+front-to-back order of centre depth, ties by index), a tile's pixels are blended front to back,
+splat by splat over the splat's footprint box inside the tile.  The backward walks each tile's list
+back to front, recovering the transmittance by division and keeping, per pixel, the running
+"what comes after" dot product.  Tiles run in parallel (``prange``); gradients go to one buffer per
+worker chunk (tiles are dealt round-robin to chunks), summed afterwards: race-free and
+deterministic.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numba
+import numpy as np
+import torch
+from numba import njit, prange
+from torch import Tensor
+
+from .projection import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN, Projected
+
+log = logging.getLogger(__name__)
+
+TILE = 16
+TILE_PIXELS = TILE * TILE
+GEOM_COLS = 16
+GEOM_GRAD_COLS = 15
+LEVEL_SLACK = 1e-3
+# value-preserving fast-math flags only: forward and backward must make identical skip decisions
+FASTMATH = {"nnan", "ninf", "nsz"}
+
+
+# ----------------------------------------------------------------------------------------------
+# binning
+# ----------------------------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def bin_tiles(boxes, order, tiles_x, tiles_y):
+    """Tile lists.
+
+    Args:
+        boxes: [N, 4] int64 (x0, y0, x1, y1) half-open pixel boxes.
+        order: [M] int64 splat indices to bin, front to back.
+    Returns:
+        offsets [tiles + 1] int64 and lists [offsets[-1]] int32: tile t holds
+        lists[offsets[t]:offsets[t + 1]], front to back.
+    """
+    n_tiles = tiles_x * tiles_y
+    counts = np.zeros(n_tiles + 1, np.int64)
+    for i in range(order.shape[0]):
+        g = order[i]
+        tx0 = boxes[g, 0] // TILE
+        ty0 = boxes[g, 1] // TILE
+        tx1 = (boxes[g, 2] - 1) // TILE
+        ty1 = (boxes[g, 3] - 1) // TILE
+        for ty in range(ty0, ty1 + 1):
+            for tx in range(tx0, tx1 + 1):
+                counts[ty * tiles_x + tx + 1] += 1
+    offsets = np.cumsum(counts)
+    fill = offsets[:-1].copy()
+    lists = np.empty(offsets[-1], np.int32)
+    for i in range(order.shape[0]):
+        g = order[i]
+        tx0 = boxes[g, 0] // TILE
+        ty0 = boxes[g, 1] // TILE
+        tx1 = (boxes[g, 2] - 1) // TILE
+        ty1 = (boxes[g, 3] - 1) // TILE
+        for ty in range(ty0, ty1 + 1):
+            for tx in range(tx0, tx1 + 1):
+                t = ty * tiles_x + tx
+                lists[fill[t]] = g
+                fill[t] += 1
+    return offsets, lists
+
+
+# ----------------------------------------------------------------------------------------------
+# forward
+# ----------------------------------------------------------------------------------------------
+
+
+@njit(parallel=True, cache=True, fastmath=FASTMATH)
+def forward_kernel(geom, vals, boxes, offsets, lists, width, height, tiles_x, near):
+    """Front-to-back blending of every tile.
+
+    Args:
+        geom: [N, 16] float32; vals: [N, K] float32; boxes: [N, 4] int64; offsets, lists: tile lists.
+    Returns:
+        acc [H, W, K], acc_z [H, W] (sum w z), acc_z2 [H, W] (sum w (z - z_ref)^2 with z_ref the
+        depth of the pixel's first blended splat, which keeps the distortion well conditioned),
+        final_t [H, W], median_z [H, W], depth_ref [H, W] (z_ref), last [H, W] int32 (list position + 1 of the last blended splat, 0 if none),
+        median_at [H, W] int32 (list position of the median splat, -1 if none), pairs [tiles] int64
+        (pixel-splat pairs the inner loop visited).
+    """
+    k_ch = vals.shape[1]
+    n_tiles = offsets.shape[0] - 1
+    acc = np.zeros((height, width, k_ch), np.float32)
+    acc_z = np.zeros((height, width), np.float32)
+    acc_z2 = np.zeros((height, width), np.float32)
+    final_t = np.ones((height, width), np.float32)
+    median_z = np.zeros((height, width), np.float32)
+    depth_ref = np.zeros((height, width), np.float32)
+    last = np.zeros((height, width), np.int32)
+    median_at = np.full((height, width), -1, np.int32)
+    pairs = np.zeros(n_tiles, np.int64)
+    alpha_min = np.float32(ALPHA_MIN)
+    alpha_max = np.float32(ALPHA_MAX)
+    t_min = np.float32(TRANSMITTANCE_MIN)
+    near32 = np.float32(near)
+    for t in prange(n_tiles):
+        start = offsets[t]
+        end = offsets[t + 1]
+        if start == end:
+            continue
+        px0 = (t % tiles_x) * TILE
+        py0 = (t // tiles_x) * TILE
+        px1 = min(px0 + TILE, width)
+        py1 = min(py0 + TILE, height)
+        n_pix = (px1 - px0) * (py1 - py0)
+        trans = np.ones(TILE_PIXELS, np.float32)
+        done = np.zeros(TILE_PIXELS, np.bool_)
+        t_acc = np.zeros((TILE_PIXELS, k_ch), np.float32)
+        t_z = np.zeros(TILE_PIXELS, np.float32)
+        t_z2 = np.zeros(TILE_PIXELS, np.float32)
+        t_med = np.zeros(TILE_PIXELS, np.float32)
+        t_ref = np.zeros(TILE_PIXELS, np.float32)
+        t_last = np.zeros(TILE_PIXELS, np.int32)
+        t_med_at = np.full(TILE_PIXELS, -1, np.int32)
+        n_done = 0
+        visited = 0
+        for j in range(start, end):
+            g = lists[j]
+            x0 = max(boxes[g, 0], px0)
+            x1 = min(boxes[g, 2], px1)
+            y0 = max(boxes[g, 1], py0)
+            y1 = min(boxes[g, 3], py1)
+            visited += (x1 - x0) * (y1 - y0)
+            a0 = geom[g, 0]
+            a1 = geom[g, 1]
+            a2 = geom[g, 2]
+            b0 = geom[g, 3]
+            b1 = geom[g, 4]
+            b2 = geom[g, 5]
+            d0 = geom[g, 6]
+            d1 = geom[g, 7]
+            d2 = geom[g, 8]
+            tw0 = geom[g, 9]
+            tw1 = geom[g, 10]
+            tw2 = geom[g, 11]
+            mx = geom[g, 12]
+            my = geom[g, 13]
+            opac = geom[g, 14]
+            level = geom[g, 15]
+            for py in range(y0, y1):
+                y = np.float32(py) + np.float32(0.5)
+                e0 = a0 + d0 * y
+                e1 = a1 + d1 * y
+                e2 = a2 + d2 * y
+                dy = y - my
+                dy2 = dy * dy
+                row = (py - py0) * TILE - px0
+                for px in range(x0, x1):
+                    p = row + px
+                    if done[p]:
+                        continue
+                    x = np.float32(px) + np.float32(0.5)
+                    c2 = e2 + b2 * x
+                    if c2 == 0:
+                        continue
+                    u = (e0 + b0 * x) / c2
+                    v = (e1 + b1 * x) / c2
+                    s_disk = np.float32(0.5) * (u * u + v * v)
+                    dx = x - mx
+                    s_filt = dx * dx + dy2
+                    use_disk = s_disk <= s_filt
+                    sigma = s_disk if use_disk else s_filt
+                    if sigma > level:
+                        continue
+                    z = (u * tw0 + v * tw1 + tw2) if use_disk else tw2
+                    if not z > near32:
+                        continue
+                    alpha = opac * np.exp(-sigma)
+                    if alpha > alpha_max:
+                        alpha = alpha_max
+                    if alpha < alpha_min:
+                        continue
+                    t_next = trans[p] * (np.float32(1.0) - alpha)
+                    if t_next < t_min:
+                        done[p] = True
+                        n_done += 1
+                        continue
+                    w = alpha * trans[p]
+                    for ch in range(k_ch):
+                        t_acc[p, ch] += w * vals[g, ch]
+                    if t_last[p] == 0:
+                        t_ref[p] = z
+                    dz = z - t_ref[p]
+                    t_z[p] += w * z
+                    t_z2[p] += w * dz * dz
+                    if trans[p] > np.float32(0.5):
+                        t_med[p] = z
+                        t_med_at[p] = j
+                    trans[p] = t_next
+                    t_last[p] = j + 1
+            if n_done == n_pix:
+                break
+        pairs[t] = visited
+        for py in range(py0, py1):
+            for px in range(px0, px1):
+                p = (py - py0) * TILE + (px - px0)
+                for ch in range(k_ch):
+                    acc[py, px, ch] = t_acc[p, ch]
+                acc_z[py, px] = t_z[p]
+                acc_z2[py, px] = t_z2[p]
+                final_t[py, px] = trans[p]
+                median_z[py, px] = t_med[p]
+                depth_ref[py, px] = t_ref[p]
+                last[py, px] = t_last[p]
+                median_at[py, px] = t_med_at[p]
+    return acc, acc_z, acc_z2, final_t, median_z, depth_ref, last, median_at, pairs
+
+
+# ----------------------------------------------------------------------------------------------
+# backward
+# ----------------------------------------------------------------------------------------------
+
+
+@njit(parallel=True, cache=True, fastmath=FASTMATH)
+def backward_kernel(geom, vals, boxes, offsets, lists, width, height, tiles_x, near, n_chunks,
+                    final_t, depth_ref, last, median_at, v_acc, v_z, v_z2, v_final_t, v_median):
+    """Back-to-front gradients of every tile.
+
+    Args:
+        as :func:`forward_kernel`, plus its saved final_t, depth_ref, last, median_at [H, W] and the upstream
+        gradients v_acc [H, W, K], v_z, v_z2, v_final_t, v_median [H, W].
+    Returns:
+        grads [n_chunks, N, 15 + K] float32 (sum over axis 0): d/d geom[:, :15] then d/d vals.
+    """
+    n = geom.shape[0]
+    k_ch = vals.shape[1]
+    n_cols = GEOM_GRAD_COLS + k_ch
+    n_tiles = offsets.shape[0] - 1
+    grads = np.zeros((n_chunks, n, n_cols), np.float32)
+    alpha_min = np.float32(ALPHA_MIN)
+    alpha_max = np.float32(ALPHA_MAX)
+    near32 = np.float32(near)
+    one = np.float32(1.0)
+    for chunk in prange(n_chunks):
+        gbuf = grads[chunk]
+        trans = np.empty(TILE_PIXELS, np.float32)
+        after = np.empty(TILE_PIXELS, np.float32)  # running sum over later splats of w * dot
+        t_last = np.empty(TILE_PIXELS, np.int32)
+        g_vals = np.empty(k_ch, np.float32)
+        for t in range(chunk, n_tiles, n_chunks):
+            start = offsets[t]
+            end = offsets[t + 1]
+            if start == end:
+                continue
+            px0 = (t % tiles_x) * TILE
+            py0 = (t // tiles_x) * TILE
+            px1 = min(px0 + TILE, width)
+            py1 = min(py0 + TILE, height)
+            max_last = 0
+            for p in range(TILE_PIXELS):
+                t_last[p] = 0
+                trans[p] = one
+                after[p] = 0
+            for py in range(py0, py1):
+                for px in range(px0, px1):
+                    p = (py - py0) * TILE + (px - px0)
+                    t_last[p] = last[py, px]
+                    trans[p] = final_t[py, px]
+                    if t_last[p] > max_last:
+                        max_last = t_last[p]
+            for j in range(max_last - 1, start - 1, -1):
+                g = lists[j]
+                x0 = max(boxes[g, 0], px0)
+                x1 = min(boxes[g, 2], px1)
+                y0 = max(boxes[g, 1], py0)
+                y1 = min(boxes[g, 3], py1)
+                a0 = geom[g, 0]
+                a1 = geom[g, 1]
+                a2 = geom[g, 2]
+                b0 = geom[g, 3]
+                b1 = geom[g, 4]
+                b2 = geom[g, 5]
+                d0 = geom[g, 6]
+                d1 = geom[g, 7]
+                d2 = geom[g, 8]
+                tw0 = geom[g, 9]
+                tw1 = geom[g, 10]
+                tw2 = geom[g, 11]
+                mx = geom[g, 12]
+                my = geom[g, 13]
+                opac = geom[g, 14]
+                level = geom[g, 15]
+                # per-splat gradient sums over this tile
+                ga0 = np.float32(0.0)
+                ga1 = np.float32(0.0)
+                ga2 = np.float32(0.0)
+                gb0 = np.float32(0.0)
+                gb1 = np.float32(0.0)
+                gb2 = np.float32(0.0)
+                gd0 = np.float32(0.0)
+                gd1 = np.float32(0.0)
+                gd2 = np.float32(0.0)
+                gtw0 = np.float32(0.0)
+                gtw1 = np.float32(0.0)
+                gtw2 = np.float32(0.0)
+                gmx = np.float32(0.0)
+                gmy = np.float32(0.0)
+                gop = np.float32(0.0)
+                for ch in range(k_ch):
+                    g_vals[ch] = 0
+                touched = False
+                for py in range(y0, y1):
+                    y = np.float32(py) + np.float32(0.5)
+                    e0 = a0 + d0 * y
+                    e1 = a1 + d1 * y
+                    e2 = a2 + d2 * y
+                    dy = y - my
+                    dy2 = dy * dy
+                    row = (py - py0) * TILE - px0
+                    rc0 = np.float32(0.0)
+                    rc1 = np.float32(0.0)
+                    rc2 = np.float32(0.0)
+                    for px in range(x0, x1):
+                        p = row + px
+                        if j >= t_last[p]:
+                            continue
+                        x = np.float32(px) + np.float32(0.5)
+                        c2 = e2 + b2 * x
+                        if c2 == 0:
+                            continue
+                        u = (e0 + b0 * x) / c2
+                        v = (e1 + b1 * x) / c2
+                        s_disk = np.float32(0.5) * (u * u + v * v)
+                        dx = x - mx
+                        s_filt = dx * dx + dy2
+                        use_disk = s_disk <= s_filt
+                        sigma = s_disk if use_disk else s_filt
+                        if sigma > level:
+                            continue
+                        z = (u * tw0 + v * tw1 + tw2) if use_disk else tw2
+                        if not z > near32:
+                            continue
+                        gauss = np.exp(-sigma)
+                        alpha = opac * gauss
+                        clamped = alpha > alpha_max
+                        if clamped:
+                            alpha = alpha_max
+                        if alpha < alpha_min:
+                            continue
+                        touched = True
+                        one_minus = one - alpha
+                        t_before = trans[p] / one_minus
+                        w = alpha * t_before
+                        # dot of the upstream gradient with this splat's per-pixel values
+                        dz = z - depth_ref[py, px]
+                        dot = v_z[py, px] * z + v_z2[py, px] * dz * dz
+                        for ch in range(k_ch):
+                            vg = v_acc[py, px, ch]
+                            dot += vg * vals[g, ch]
+                            g_vals[ch] += w * vg
+                        g_alpha = t_before * dot - (after[p] + v_final_t[py, px] * final_t[py, px]) / one_minus
+                        after[p] += w * dot
+                        trans[p] = t_before
+                        g_z = w * (v_z[py, px] + np.float32(2.0) * dz * v_z2[py, px])
+                        if median_at[py, px] == j:
+                            g_z += v_median[py, px]
+                        g_sigma = np.float32(0.0)
+                        if not clamped:
+                            gop += g_alpha * gauss
+                            g_sigma = -g_alpha * alpha
+                        gtw2 += g_z
+                        if use_disk:
+                            g_u = g_z * tw0 + g_sigma * u
+                            g_v = g_z * tw1 + g_sigma * v
+                            gtw0 += g_z * u
+                            gtw1 += g_z * v
+                        else:
+                            g_u = np.float32(0.0)
+                            g_v = np.float32(0.0)
+                            gmx -= np.float32(2.0) * dx * g_sigma
+                            gmy -= np.float32(2.0) * dy * g_sigma
+                        g_c0 = g_u / c2
+                        g_c1 = g_v / c2
+                        g_c2 = -(g_u * u + g_v * v) / c2
+                        rc0 += g_c0
+                        rc1 += g_c1
+                        rc2 += g_c2
+                        gb0 += g_c0 * x
+                        gb1 += g_c1 * x
+                        gb2 += g_c2 * x
+                    ga0 += rc0
+                    ga1 += rc1
+                    ga2 += rc2
+                    gd0 += rc0 * y
+                    gd1 += rc1 * y
+                    gd2 += rc2 * y
+                if touched:
+                    gbuf[g, 0] += ga0
+                    gbuf[g, 1] += ga1
+                    gbuf[g, 2] += ga2
+                    gbuf[g, 3] += gb0
+                    gbuf[g, 4] += gb1
+                    gbuf[g, 5] += gb2
+                    gbuf[g, 6] += gd0
+                    gbuf[g, 7] += gd1
+                    gbuf[g, 8] += gd2
+                    gbuf[g, 9] += gtw0
+                    gbuf[g, 10] += gtw1
+                    gbuf[g, 11] += gtw2
+                    gbuf[g, 12] += gmx
+                    gbuf[g, 13] += gmy
+                    gbuf[g, 14] += gop
+                    for ch in range(k_ch):
+                        gbuf[g, GEOM_GRAD_COLS + ch] += g_vals[ch]
+    return grads
+
+
+# ----------------------------------------------------------------------------------------------
+# tracing (GIT)
+# ----------------------------------------------------------------------------------------------
+
+
+@njit(parallel=True, cache=True, fastmath=FASTMATH)
+def trace_kernel(geom, boxes, offsets, lists, width, height, tiles_x, near, labels, num_labels):
+    """Per-tile sums of blending weights by label, as sparse triplets.
+
+    Args:
+        as :func:`forward_kernel`; labels: [H, W] int64 (negative = ignored).
+    Returns:
+        rows [E] int64 (splat), cols [E] int64 (label), weights [E] float32; the same (row, col)
+        may repeat across tiles (sum them).
+    """
+    n_tiles = offsets.shape[0] - 1
+    alpha_min = np.float32(ALPHA_MIN)
+    alpha_max = np.float32(ALPHA_MAX)
+    t_min = np.float32(TRANSMITTANCE_MIN)
+    near32 = np.float32(near)
+    # distinct labels per tile
+    n_local = np.zeros(n_tiles, np.int64)
+    for t in prange(n_tiles):
+        px0 = (t % tiles_x) * TILE
+        py0 = (t // tiles_x) * TILE
+        px1 = min(px0 + TILE, width)
+        py1 = min(py0 + TILE, height)
+        seen = np.zeros(TILE_PIXELS, np.int64)
+        count = 0
+        for py in range(py0, py1):
+            for px in range(px0, px1):
+                lab = labels[py, px]
+                if lab < 0:
+                    continue
+                new = True
+                for i in range(count):
+                    if seen[i] == lab:
+                        new = False
+                        break
+                if new:
+                    seen[count] = lab
+                    count += 1
+        n_local[t] = count
+    cap = np.zeros(n_tiles + 1, np.int64)
+    for t in range(n_tiles):
+        cap[t + 1] = cap[t] + (offsets[t + 1] - offsets[t]) * n_local[t]
+    rows = np.empty(cap[n_tiles], np.int64)
+    cols = np.empty(cap[n_tiles], np.int64)
+    weights = np.zeros(cap[n_tiles], np.float32)
+    used = np.zeros(n_tiles, np.int64)
+    for t in prange(n_tiles):
+        start = offsets[t]
+        end = offsets[t + 1]
+        n_lab = n_local[t]
+        if start == end or n_lab == 0:
+            continue
+        px0 = (t % tiles_x) * TILE
+        py0 = (t // tiles_x) * TILE
+        px1 = min(px0 + TILE, width)
+        py1 = min(py0 + TILE, height)
+        n_pix = (px1 - px0) * (py1 - py0)
+        local_of = np.full(TILE_PIXELS, -1, np.int64)
+        label_of = np.zeros(n_lab, np.int64)
+        count = 0
+        for py in range(py0, py1):
+            for px in range(px0, px1):
+                lab = labels[py, px]
+                if lab < 0:
+                    continue
+                found = -1
+                for i in range(count):
+                    if label_of[i] == lab:
+                        found = i
+                        break
+                if found < 0:
+                    label_of[count] = lab
+                    found = count
+                    count += 1
+                local_of[(py - py0) * TILE + (px - px0)] = found
+        table = np.zeros((end - start, n_lab), np.float32)
+        trans = np.ones(TILE_PIXELS, np.float32)
+        done = np.zeros(TILE_PIXELS, np.bool_)
+        n_done = 0
+        n_used = start
+        for j in range(start, end):
+            g = lists[j]
+            n_used = j + 1
+            x0 = max(boxes[g, 0], px0)
+            x1 = min(boxes[g, 2], px1)
+            y0 = max(boxes[g, 1], py0)
+            y1 = min(boxes[g, 3], py1)
+            a0 = geom[g, 0]
+            a1 = geom[g, 1]
+            a2 = geom[g, 2]
+            b0 = geom[g, 3]
+            b1 = geom[g, 4]
+            b2 = geom[g, 5]
+            d0 = geom[g, 6]
+            d1 = geom[g, 7]
+            d2 = geom[g, 8]
+            tw0 = geom[g, 9]
+            tw1 = geom[g, 10]
+            tw2 = geom[g, 11]
+            mx = geom[g, 12]
+            my = geom[g, 13]
+            opac = geom[g, 14]
+            level = geom[g, 15]
+            for py in range(y0, y1):
+                y = np.float32(py) + np.float32(0.5)
+                e0 = a0 + d0 * y
+                e1 = a1 + d1 * y
+                e2 = a2 + d2 * y
+                dy = y - my
+                dy2 = dy * dy
+                row = (py - py0) * TILE - px0
+                for px in range(x0, x1):
+                    p = row + px
+                    if done[p]:
+                        continue
+                    x = np.float32(px) + np.float32(0.5)
+                    c2 = e2 + b2 * x
+                    if c2 == 0:
+                        continue
+                    u = (e0 + b0 * x) / c2
+                    v = (e1 + b1 * x) / c2
+                    s_disk = np.float32(0.5) * (u * u + v * v)
+                    dx = x - mx
+                    s_filt = dx * dx + dy2
+                    use_disk = s_disk <= s_filt
+                    sigma = s_disk if use_disk else s_filt
+                    if sigma > level:
+                        continue
+                    z = (u * tw0 + v * tw1 + tw2) if use_disk else tw2
+                    if not z > near32:
+                        continue
+                    alpha = opac * np.exp(-sigma)
+                    if alpha > alpha_max:
+                        alpha = alpha_max
+                    if alpha < alpha_min:
+                        continue
+                    t_next = trans[p] * (np.float32(1.0) - alpha)
+                    if t_next < t_min:
+                        done[p] = True
+                        n_done += 1
+                        continue
+                    loc = local_of[p]
+                    if loc >= 0:
+                        table[j - start, loc] += alpha * trans[p]
+                    trans[p] = t_next
+            if n_done == n_pix:
+                break
+        base = cap[t]
+        e = 0
+        for j in range(start, n_used):
+            g = lists[j]
+            for i in range(n_lab):
+                wv = table[j - start, i]
+                if wv != 0:
+                    rows[base + e] = g
+                    cols[base + e] = label_of[i]
+                    weights[base + e] = wv
+                    e += 1
+        used[t] = e
+    total = 0
+    for t in range(n_tiles):
+        total += used[t]
+    out_rows = np.empty(total, np.int64)
+    out_cols = np.empty(total, np.int64)
+    out_w = np.empty(total, np.float32)
+    k = 0
+    for t in range(n_tiles):
+        for e in range(used[t]):
+            out_rows[k] = rows[cap[t] + e]
+            out_cols[k] = cols[cap[t] + e]
+            out_w[k] = weights[cap[t] + e]
+            k += 1
+    return out_rows, out_cols, out_w
+
+
+# ----------------------------------------------------------------------------------------------
+# torch glue
+# ----------------------------------------------------------------------------------------------
+
+
+class Binning:
+    """Tile lists of one projection (numpy, CPU)."""
+
+    def __init__(self, proj: Projected, width: int, height: int):
+        self.width = int(width)
+        self.height = int(height)
+        self.tiles_x = (self.width + TILE - 1) // TILE
+        self.tiles_y = (self.height + TILE - 1) // TILE
+        self.boxes = np.ascontiguousarray(proj.boxes, dtype=np.int64)
+        visible = proj.visible.cpu().numpy()
+        idx = np.nonzero(visible)[0]
+        depth = proj.depths.detach().cpu().numpy()[idx]
+        self.order = idx[np.argsort(depth, kind="stable")].astype(np.int64)
+        self.offsets, self.lists = bin_tiles(self.boxes, self.order, self.tiles_x, self.tiles_y)
+        self.pairs = None  # [tiles] pixel-splat pairs visited by the last forward
+
+
+def pack_geometry(proj: Projected) -> Tensor:
+    """[N, 15] differentiable kernel inputs: coeffs (9), T_w (3), means2d (2), opacity (1)."""
+    return torch.cat([proj.coeffs, proj.ray_transforms[:, 2], proj.means2d, proj.opacities[:, None]], dim=1)
+
+
+def _geom_array(geom15: Tensor) -> np.ndarray:
+    g = geom15.detach().to("cpu", torch.float32).numpy()
+    out = np.empty((g.shape[0], GEOM_COLS), np.float32)
+    out[:, :GEOM_GRAD_COLS] = g
+    with np.errstate(divide="ignore"):
+        out[:, 15] = np.log(np.maximum(g[:, 14].astype(np.float64), 1e-30) * 255.0) + LEVEL_SLACK
+    return out
+
+
+def _f32(t: Tensor) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
+
+
+class _Rasterize(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, geom15: Tensor, vals: Tensor, binning: Binning, near: float):
+        geom = _geom_array(geom15)
+        vals_np = _f32(vals)
+        acc, acc_z, acc_z2, final_t, median_z, depth_ref, last, median_at, pairs = forward_kernel(
+            geom, vals_np, binning.boxes, binning.offsets, binning.lists, binning.width, binning.height,
+            binning.tiles_x, float(near))
+        binning.pairs = pairs
+        ctx.binning = binning
+        ctx.near = near
+        ctx.in_dtype = (geom15.dtype, vals.dtype, geom15.device)
+        ctx.saved = (geom, vals_np, final_t, depth_ref, last, median_at)
+        dev, dt = vals.device, vals.dtype
+        outs = [torch.from_numpy(a).to(device=dev, dtype=dt) for a in (acc, acc_z, acc_z2, final_t, median_z)]
+        ref = torch.from_numpy(depth_ref).to(device=dev, dtype=dt)
+        ctx.mark_non_differentiable(ref)
+        return tuple(outs) + (ref,)
+
+    @staticmethod
+    def backward(ctx, v_acc, v_z, v_z2, v_final_t, v_median, v_ref):
+        b = ctx.binning
+        geom, vals_np, final_t, depth_ref, last, median_at = ctx.saved
+        h, w, k = b.height, b.width, vals_np.shape[1]
+
+        def arr(t, shape):
+            if t is None:
+                return np.zeros(shape, np.float32)
+            return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
+
+        n_chunks = max(1, numba.get_num_threads())
+        grads = backward_kernel(geom, vals_np, b.boxes, b.offsets, b.lists, b.width, b.height, b.tiles_x,
+                                float(ctx.near), n_chunks, final_t, depth_ref, last, median_at,
+                                arr(v_acc, (h, w, k)), arr(v_z, (h, w)), arr(v_z2, (h, w)),
+                                arr(v_final_t, (h, w)), arr(v_median, (h, w)))
+        total = grads.sum(axis=0) if n_chunks > 1 else grads[0]
+        gdt, vdt, dev = ctx.in_dtype
+        g_geom = torch.from_numpy(np.ascontiguousarray(total[:, :GEOM_GRAD_COLS])).to(device=dev, dtype=gdt)
+        g_vals = torch.from_numpy(np.ascontiguousarray(total[:, GEOM_GRAD_COLS:])).to(device=dev, dtype=vdt)
+        return g_geom, g_vals, None, None
+
+
+def rasterize(proj: Projected, features: Tensor, width: int, height: int, background: Tensor,
+              near: float = 0.01, binning: Binning | None = None) -> dict[str, Tensor]:
+    """Tile-kernel render of projected splats (same outputs as ``render_reference``).
+
+    Args:
+        proj: projection; features: [N, C]; background: [C].
+    Returns:
+        dict with features [H, W, C], alpha, depth, depth2 (sum w (z - depth_ref)^2), depth_ref,
+        median_depth [H, W], normal [H, W, 3].
+    """
+    if binning is None:
+        binning = Binning(proj, width, height)
+    c = features.shape[1]
+    vals = torch.cat([features, proj.normals.to(features.dtype)], dim=1)
+    acc, acc_z, acc_z2, final_t, median_z, depth_ref = _Rasterize.apply(pack_geometry(proj), vals, binning, near)
+    return {
+        "features": acc[..., :c] + final_t[..., None] * background,
+        "alpha": 1.0 - final_t,
+        "depth": acc_z,
+        "depth2": acc_z2,
+        "depth_ref": depth_ref,
+        "normal": acc[..., c:],
+        "median_depth": median_z,
+        "final_t": final_t,
+        "pairs": binning.pairs,
+    }
+
+
+def trace_weights(proj: Projected, width: int, height: int, labels: Tensor, num_labels: int,
+                  near: float = 0.01) -> Tensor:
+    """GIT weights of one view with the dedicated kernel: sparse COO [N, T] float32, coalesced."""
+    binning = Binning(proj, width, height)
+    geom = _geom_array(pack_geometry(proj))
+    lab = np.ascontiguousarray(labels.detach().cpu().numpy().astype(np.int64))
+    rows, cols, w = trace_kernel(geom, binning.boxes, binning.offsets, binning.lists, binning.width,
+                                 binning.height, binning.tiles_x, float(near), lab, int(num_labels))
+    n = proj.depths.shape[0]
+    dev = proj.depths.device
+    idx = torch.from_numpy(np.stack([rows, cols])) if rows.size else torch.zeros(2, 0, dtype=torch.int64)
+    return torch.sparse_coo_tensor(idx, torch.from_numpy(w), (n, num_labels)).coalesce().to(dev)
