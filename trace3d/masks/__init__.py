@@ -1,0 +1,126 @@
+"""2D masks per view and the primitive patches made from them.
+
+Mask sources (config key ``masks.source``), each yielding per frame a bool stack [M, H, W] and
+scores [M]:
+
+* ``simulated`` (:mod:`.simulate`): SAM-like masks from the ground truth, with controlled
+  cross-view inconsistency; the default for the synthetic benchmark.
+* ``files`` (:mod:`.files`): masks computed elsewhere, from the scene's ``masks/`` folder.
+* ``sam`` (:mod:`.sam`): Segment Anything's automatic mask generator (optional package).
+
+:func:`run_masks` writes ``<frame>.npz`` ("masks" bool [M, H, W], "scores" float32 [M]) for every
+frame (train and test) and ``masks.json`` (source, resolved parameters, masks per view, and when the
+scene has ground-truth instances, how consistently objects appear across views).
+:mod:`.patches` turns them into disjoint patches (paper Sec. 3.2).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from ..errors import SceneFormatError, Trace3DError
+from ..io import atomic_file, write_json
+from ..params import from_mapping, to_dict
+from ..scene import Scene
+from .files import FilesParams, iter_file_masks, read_mask_npz
+from .patches import PatchHierarchy, PatchParams, masks_to_patches, read_patches, run_patches
+from .sam import SamParams, iter_sam_masks
+from .simulate import (
+    SimulatedPromptSegmenter,
+    SimulateParams,
+    cross_view_disagreement,
+    frame_rng,
+    iter_simulated_masks,
+    object_status,
+    simulate_view_masks,
+)
+
+log = logging.getLogger(__name__)
+
+SOURCES = ("simulated", "files", "sam")
+
+__all__ = [
+    "SOURCES",
+    "FilesParams",
+    "PatchHierarchy",
+    "PatchParams",
+    "SamParams",
+    "SimulateParams",
+    "SimulatedPromptSegmenter",
+    "cross_view_disagreement",
+    "frame_rng",
+    "iter_masks",
+    "masks_to_patches",
+    "object_status",
+    "parse_params",
+    "read_mask_npz",
+    "read_patches",
+    "run_masks",
+    "run_patches",
+    "simulate_view_masks",
+    "write_mask_npz",
+]
+
+
+def parse_params(source: str, params: dict | None):
+    """The typed parameter set of ``source`` from a raw config mapping (unknown keys refused)."""
+    if source == "simulated":
+        return from_mapping(SimulateParams, params, "masks params (simulated)")
+    if source == "files":
+        return from_mapping(FilesParams, params, "masks params (files)")
+    if source == "sam":
+        return from_mapping(SamParams, params, "masks params (sam)")
+    raise Trace3DError(f"unknown mask source {source!r}; expected one of {list(SOURCES)}.")
+
+
+def iter_masks(scene: Scene, source: str, params) -> Iterator[tuple[str, np.ndarray, np.ndarray]]:
+    """Yield (frame name, masks [M, H, W] bool, scores [M] float32) for every frame of ``scene``."""
+    if source == "simulated":
+        return iter_simulated_masks(scene, params)
+    if source == "files":
+        return iter_file_masks(scene, params)
+    if source == "sam":
+        return iter_sam_masks(scene, params)
+    raise Trace3DError(f"unknown mask source {source!r}; expected one of {list(SOURCES)}.")
+
+
+def write_mask_npz(path: str | Path, masks: np.ndarray, scores: np.ndarray) -> None:
+    """Write one view's masks [M, H, W] bool and scores [M] float32 as a compressed npz (atomically)."""
+    with atomic_file(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, masks=np.asarray(masks, dtype=bool), scores=np.asarray(scores, np.float32))
+
+
+def run_masks(scene: Scene, out_dir: Path, source: str, params: dict) -> None:
+    """Compute the 2D masks of every frame of ``scene`` with ``source`` into ``out_dir``."""
+    typed = parse_params(source, params)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    counts: dict[str, int] = {}
+    statuses = []
+    for name, masks, scores in iter_masks(scene, source, typed):
+        cam = scene.camera(name)
+        if masks.shape[1:] != (cam.height, cam.width) or masks.dtype != bool or scores.shape != (len(masks),):
+            raise SceneFormatError(
+                f"{scene.image_path(name)}: the {source} source produced masks of shape {masks.shape} "
+                f"and scores of shape {scores.shape} for a {cam.width}x{cam.height} image."
+            )
+        write_mask_npz(out_dir / f"{name}.npz", masks, scores)
+        counts[name] = int(len(masks))
+        if scene.has_instances:
+            statuses.append(object_status(masks, scene.instances(name), scene.objects))
+    summary = {
+        "source": source,
+        "params": to_dict(typed),
+        "total_masks": int(sum(counts.values())),
+        "mean_masks_per_view": float(np.mean(list(counts.values()))) if counts else 0.0,
+        "masks_per_view": counts,
+    }
+    if statuses:
+        summary["ground_truth_check"] = cross_view_disagreement(statuses)
+    write_json(out_dir / "masks.json", summary)
+    log.info("masks (%s): %d views, %.1f masks per view", source, len(counts), summary["mean_masks_per_view"])
