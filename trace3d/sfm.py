@@ -1,0 +1,554 @@
+"""Camera poses: pycolmap structure-from-motion, or the data set's own cameras.
+
+Entry point :func:`run_poses` (the ``poses`` pipeline step, ``trace3d poses``).  It writes into an
+empty folder:
+
+    sparse/0/       COLMAP binary model (cameras.bin, images.bin, points3D.bin, rigs.bin, frames.bin)
+    cameras.json    our camera convention (:func:`trace3d.scene.write_cameras`), one entry per scene
+                    frame with the scene's names and splits, test views included
+    points3D.ply    x y z + red green blue (binary PLY), the trainer's initialisation
+    sfm.json        registration, reprojection error, track length, points, pose error, timings,
+                    the resolved parameters
+
+``mode: colmap`` runs SIFT extraction, exhaustive or sequential matching and incremental mapping on
+the CPU, with a shared PINHOLE camera when every frame has the same size and intrinsics (or when
+``single_camera`` says so).  The scene's intrinsics are used as the camera's (fixed unless
+``refine_intrinsics``) when ``known_intrinsics``; otherwise COLMAP estimates them.  Every scene
+frame, train and test, must register (``min_registered_fraction = 1``); a failed or partial
+reconstruction raises :class:`~trace3d.errors.Trace3DError` naming the frames that are missing.
+
+Output frame.  When the scene has reference poses (its ``cameras.json``; see
+:func:`scene_has_reference_poses`), the reconstruction is mapped by the Sim(3) (Umeyama) that best
+aligns its camera centres with the reference centres, so that every output (COLMAP model,
+cameras.json, points) lives in the scene's frame and later steps can evaluate against the scene's
+depths and instances.  The residual camera-centre error after that alignment is reported relative
+to the diameter of the reference camera centres (largest pairwise distance).  Without reference
+poses COLMAP's own frame is kept.
+
+Missing frames when ``min_registered_fraction < 1`` allows them: in the reference frame they are
+written with the scene's reference pose and listed under ``filled_from_scene`` in sfm.json (later
+steps need every frame); without reference poses they cannot be placed and are left out of
+cameras.json, listed under ``missing``.
+
+``mode: dataset`` copies the scene's cameras and, when the scene has ``depth/``, back-projects a
+random subsample of depth pixels of every frame into ``points3D.ply``; without depth no
+``points3D.ply`` is written (so the trainer's ``init: auto`` falls back to depth / random) and
+sfm.json says so in its ``note``.  The COLMAP model holds the cameras and the track-less points.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import tempfile
+import time
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from tqdm import tqdm
+
+from .errors import ConfigError, Trace3DError
+from .io import write_json
+from .params import from_mapping, to_dict
+from .pointcloud import Sim3, rotation_angle_deg, umeyama, write_points_ply
+from .scene import Camera, Scene, write_cameras
+
+log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass
+class PosesParams:
+    """Parameters of the ``poses`` step (COLMAP's defaults where COLMAP has one).
+
+    Attributes:
+        mode: "colmap" (run SfM) or "dataset" (use the scene's cameras; points from depth if any).
+        matcher: "exhaustive" (every pair; small scenes) or "sequential" (video-like captures, frames
+            matched to their ``sequential_overlap`` successors in name order).
+        sequential_overlap: number of following frames each frame is matched with (sequential).
+        sequential_quadratic_overlap: also match frames 2^k apart (COLMAP's quadratic overlap).
+        single_camera: one shared camera for all frames; None = decide from the scene (shared when
+            every frame has the same size and, with known intrinsics, the same K).
+        known_intrinsics: start from the scene's K (its cameras.json) instead of COLMAP's guess.
+        refine_intrinsics: let bundle adjustment refine focal lengths and principal point (with
+            known intrinsics; estimated intrinsics always refine the focal lengths).
+        max_num_features: SIFT features per image.
+        max_image_size: images larger than this are downscaled for extraction.
+        init_min_num_inliers: verified matches needed by the initial image pair.
+        min_num_matches: verified matches for a pair to enter the view graph.
+        min_registered_fraction: fraction of the scene's frames that must register (1 = all).
+        min_num_points: fewer triangulated points than this is a degenerate reconstruction.
+        align_to_scene: map the reconstruction into the frame of the scene's poses; None = whenever
+            the scene has reference poses.
+        depth_points: (dataset mode) total number of depth pixels back-projected into points.
+        num_threads: CPU threads for pycolmap (-1 = all cores).
+        seed: seed of pycolmap's random number generator (RANSAC, mapping) and of point sampling.
+        colmap_log_level: verbosity of pycolmap's own log (written to stderr, the step log).
+    """
+
+    mode: Literal["colmap", "dataset"] = "colmap"
+    matcher: Literal["exhaustive", "sequential"] = "exhaustive"
+    sequential_overlap: int = 10
+    sequential_quadratic_overlap: bool = True
+    single_camera: bool | None = None
+    known_intrinsics: bool = True
+    refine_intrinsics: bool = False
+    max_num_features: int = 8192
+    max_image_size: int = 3200
+    init_min_num_inliers: int = 100
+    min_num_matches: int = 15
+    min_registered_fraction: float = 1.0
+    min_num_points: int = 100
+    align_to_scene: bool | None = None
+    depth_points: int = 100_000
+    num_threads: int = -1
+    seed: int = 0
+    colmap_log_level: Literal["info", "warning", "error"] = "info"
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.min_registered_fraction <= 1.0:
+            raise ValueError(f"min_registered_fraction must be in (0, 1], got {self.min_registered_fraction}")
+        for name in ("sequential_overlap", "max_num_features", "max_image_size", "init_min_num_inliers",
+                     "min_num_matches"):  # fmt: skip
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.min_num_points < 0 or self.depth_points < 0:
+            raise ValueError("min_num_points and depth_points must be >= 0")
+        if self.num_threads == 0 or self.num_threads < -1:
+            raise ValueError(f"num_threads must be -1 (all cores) or >= 1, got {self.num_threads}")
+
+
+def params_from(values: dict | None) -> PosesParams:
+    """Parse a raw parameter mapping (config / ``--params``) into :class:`PosesParams`."""
+    return from_mapping(PosesParams, values, "poses params")
+
+
+# ----------------------------------------------------------------------------------------------
+# entry point
+# ----------------------------------------------------------------------------------------------
+
+
+def run_poses(scene: Scene, out_dir: Path, params: dict) -> None:
+    """The ``poses`` step: write sparse/0, cameras.json, points3D.ply and sfm.json into ``out_dir``."""
+    p = params_from(params)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if p.mode == "dataset":
+        report = _run_dataset(scene, out_dir, p)
+    else:
+        report = _run_colmap(scene, out_dir, p)
+    report["params"] = to_dict(p)
+    write_json(out_dir / "sfm.json", report)
+    log.info("poses: wrote %s", out_dir)
+
+
+def scene_has_reference_poses(scene: Scene) -> bool:
+    """Whether the scene's cameras.json poses are real (ground truth or the data set's own).
+
+    An importer that does not know the poses writes identity poses and/or ``"poses": "unknown"``
+    in meta.json; both are recognised.  Poses whose centres all coincide cannot anchor a Sim(3).
+    """
+    if str(scene.meta.get("poses", "")).lower() in ("unknown", "none", "identity"):
+        return False
+    centres = np.stack([c.center for c in scene.cameras])
+    return len(centres) >= 3 and float(np.ptp(centres, axis=0).max()) > 1e-9
+
+
+def camera_diameter(centres: np.ndarray) -> float:
+    """Largest pairwise distance between camera centres [L, 3] (the scene extent used for errors)."""
+    diff = centres[:, None, :] - centres[None, :, :]
+    return float(np.sqrt((diff**2).sum(-1)).max())
+
+
+# ----------------------------------------------------------------------------------------------
+# dataset mode
+# ----------------------------------------------------------------------------------------------
+
+
+def _run_dataset(scene: Scene, out_dir: Path, p: PosesParams) -> dict:
+    cameras = [dataclasses.replace(c) for c in scene.cameras]
+    write_cameras(out_dir, cameras)
+    xyz, rgb = np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint8)
+    if scene.has_depth and p.depth_points > 0:
+        xyz, rgb = points_from_depth(scene, p.depth_points, p.seed)
+    if len(xyz):
+        note = f"{len(xyz)} points back-projected from the scene's depth maps into points3D.ply"
+        write_points_ply(out_dir / "points3D.ply", xyz, rgb)
+    else:
+        reason = "the scene has no depth/ folder" if not scene.has_depth else (
+            "depth_points is 0" if p.depth_points == 0 else "the depth maps have no valid pixel")
+        note = (f"no points3D.ply was written because {reason}; the trainer must initialise the Gaussians "
+                "another way (depth or random in the scene bounds)")
+        log.warning("poses (dataset): %s", note)
+    write_colmap_model(out_dir / "sparse" / "0", cameras, xyz, rgb)
+    log.info("poses (dataset): %d cameras copied; %s", len(cameras), note)
+    return {
+        "mode": "dataset",
+        "images_registered": len(cameras),
+        "images_total": len(scene.cameras),
+        "missing": [],
+        "num_points": int(len(xyz)),
+        "points_file": "points3D.ply" if len(xyz) else None,
+        "note": note,
+        "frame": "scene",
+    }
+
+
+def points_from_depth(scene: Scene, total: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Back-project a random subsample of valid depth pixels of every frame.
+
+    Returns xyz [P, 3] in the scene frame and rgb [P, 3] uint8, P <= total (about total / L per frame).
+    """
+    rng = np.random.default_rng(seed)
+    per_frame = max(1, total // len(scene.cameras))
+    all_xyz, all_rgb = [], []
+    for cam in tqdm(scene.cameras, desc="depth points", unit="frame", leave=False):
+        depth = scene.depth(cam.name)
+        valid = np.flatnonzero(depth.ravel() > 0)
+        if len(valid) == 0:
+            continue
+        pick = rng.choice(valid, size=min(per_frame, len(valid)), replace=False)
+        v, u = np.divmod(pick, cam.width)
+        z = depth.ravel()[pick].astype(np.float64)
+        pix = np.stack([u + 0.5, v + 0.5, np.ones_like(z)], axis=1)
+        cam_pts = (pix @ np.linalg.inv(cam.K).T) * z[:, None]
+        c2w = cam.camera_to_world
+        all_xyz.append(cam_pts @ c2w[:3, :3].T + c2w[:3, 3])
+        all_rgb.append(scene.image(cam.name).reshape(-1, 3)[pick])
+    if not all_xyz:
+        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint8)
+    return np.concatenate(all_xyz), np.concatenate(all_rgb)
+
+
+def write_colmap_model(path: Path, cameras: list[Camera], xyz: np.ndarray, rgb: np.ndarray) -> None:
+    """Write known cameras (and track-less points [P, 3] / colours [P, 3]) as a COLMAP binary model."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction()
+    for i, cam in enumerate(cameras, start=1):
+        _check_pinhole(cam, "cameras.json")
+        rec.add_camera(
+            pycolmap.Camera(
+                camera_id=i, model="PINHOLE", width=cam.width, height=cam.height,
+                params=[cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]],
+            )
+        )  # fmt: skip
+        rig = pycolmap.Rig(rig_id=i)
+        rig.add_ref_sensor(rec.camera(i).sensor_id)
+        rec.add_rig(rig)
+        image = pycolmap.Image(name=f"{cam.name}.png", camera_id=i, image_id=i)
+        frame = pycolmap.Frame(frame_id=i, rig_id=i)
+        frame.add_data_id(image.data_id)
+        frame.rig_from_world = pycolmap.Rigid3d(cam.world_to_camera[:3, :4])
+        rec.add_frame(frame)
+        image.frame_id = i
+        rec.add_image(image)
+        rec.register_frame(i)
+    for point, colour in zip(xyz, rgb):
+        rec.add_point3D(np.asarray(point, dtype=np.float64), pycolmap.Track(), np.asarray(colour, dtype=np.uint8))
+    path.mkdir(parents=True, exist_ok=True)
+    rec.write_binary(str(path))
+
+
+def _check_pinhole(cam: Camera, where: str) -> None:
+    if abs(cam.K[0, 1]) > 1e-9 or np.abs(cam.K[2] - np.array([0.0, 0.0, 1.0])).max() > 1e-9:
+        raise Trace3DError(
+            f"{where}: frame {cam.name!r} has a K with skew or a non-standard last row, "
+            "which a PINHOLE camera cannot represent."
+        )
+
+
+# ----------------------------------------------------------------------------------------------
+# colmap mode
+# ----------------------------------------------------------------------------------------------
+
+
+def _configure_colmap_log(level: str) -> None:
+    import pycolmap
+
+    pycolmap.logging.logtostderr = True
+    pycolmap.logging.minloglevel = {"info": 0, "warning": 1, "error": 2}[level]
+
+
+def _decide_single_camera(scene: Scene, p: PosesParams) -> bool:
+    sizes = {(c.width, c.height) for c in scene.cameras}
+    same_k = all(np.allclose(c.K, scene.cameras[0].K, rtol=0, atol=1e-6) for c in scene.cameras)
+    if p.single_camera is None:
+        return len(sizes) == 1 and (same_k or not p.known_intrinsics)
+    if p.single_camera and len(sizes) > 1:
+        raise ConfigError(
+            f"{scene.root / 'cameras.json'}: single_camera is true but the frames have {len(sizes)} "
+            f"different image sizes {sorted(sizes)}."
+        )
+    if p.single_camera and p.known_intrinsics and not same_k:
+        raise ConfigError(
+            f"{scene.root / 'cameras.json'}: single_camera and known_intrinsics are true but the frames' "
+            "K differ; set single_camera to false or known_intrinsics to false."
+        )
+    return bool(p.single_camera)
+
+
+def _run_colmap(scene: Scene, out_dir: Path, p: PosesParams) -> dict:
+    import pycolmap
+
+    _configure_colmap_log(p.colmap_log_level)
+    pycolmap.set_random_seed(p.seed)
+    names = [c.name for c in scene.cameras]
+    image_names = [f"{n}.png" for n in names]
+    single = _decide_single_camera(scene, p)
+    if p.known_intrinsics:
+        for cam in scene.cameras:
+            _check_pinhole(cam, str(scene.root / "cameras.json"))
+    timings: dict[str, float] = {}
+    log.info(
+        "poses (colmap): %d frames, %s matching, %s camera, intrinsics %s",
+        len(names), p.matcher, "one shared" if single else "one per image",
+        ("known, refined" if p.refine_intrinsics else "known, fixed") if p.known_intrinsics else "estimated",
+    )  # fmt: skip
+
+    with tempfile.TemporaryDirectory(prefix="trace3d-sfm-") as work:
+        database = Path(work) / "database.db"
+        image_dir = scene.root / "images"
+
+        t0 = time.perf_counter()
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.num_threads = p.num_threads
+        extraction.max_image_size = p.max_image_size
+        extraction.sift.max_num_features = p.max_num_features
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = "PINHOLE"
+        log.info("poses (colmap): extracting SIFT features ...")
+        pycolmap.extract_features(
+            str(database), str(image_dir), image_names=image_names,
+            camera_mode=pycolmap.CameraMode.SINGLE if single else pycolmap.CameraMode.PER_IMAGE,
+            camera_model="PINHOLE", reader_options=reader, extraction_options=extraction,
+            device=pycolmap.Device.cpu,
+        )  # fmt: skip
+        num_keypoints = _prepare_database(database, scene, p)
+        timings["extract_s"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        matching = pycolmap.FeatureMatchingOptions()
+        matching.num_threads = p.num_threads
+        verification = pycolmap.TwoViewGeometryOptions()
+        verification.min_num_inliers = p.min_num_matches
+        verification.ransac.random_seed = p.seed
+        log.info("poses (colmap): %s matching ...", p.matcher)
+        if p.matcher == "exhaustive":
+            pycolmap.match_exhaustive(
+                str(database), matching_options=matching, verification_options=verification,
+                device=pycolmap.Device.cpu,
+            )  # fmt: skip
+        else:
+            pairing = pycolmap.SequentialPairingOptions()
+            pairing.overlap = p.sequential_overlap
+            pairing.quadratic_overlap = p.sequential_quadratic_overlap
+            pairing.num_threads = p.num_threads
+            pycolmap.match_sequential(
+                str(database), matching_options=matching, pairing_options=pairing,
+                verification_options=verification, device=pycolmap.Device.cpu,
+            )  # fmt: skip
+        num_verified_pairs = _count_verified_pairs(database, p.min_num_matches)
+        timings["match_s"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        mapping = _mapping_options(p, len(names))
+        log.info("poses (colmap): incremental mapping (%d verified image pairs) ...", num_verified_pairs)
+        models = pycolmap.incremental_mapping(str(database), str(image_dir), str(Path(work) / "sparse"), mapping)
+        timings["map_s"] = time.perf_counter() - t0
+
+    where = f"{scene.root}"
+    if not models:
+        raise Trace3DError(
+            f"{where}: structure-from-motion built no model, so 0 of {len(names)} frames registered "
+            f"({num_verified_pairs} image pairs passed geometric verification; the images may not overlap "
+            f"or may lack texture); missing: {_name_list(names)}."
+        )
+    model_sizes = sorted((m.num_reg_images() for m in models.values()), reverse=True)
+    rec = max(models.values(), key=lambda m: (m.num_reg_images(), m.num_points3D()))
+    registered = {img.name[: -len(".png")]: img for img in rec.images.values() if img.has_pose}
+    missing = [n for n in names if n not in registered]
+    fraction = len(registered) / len(names)
+    if missing and fraction < p.min_registered_fraction:
+        several = f" (largest of {len(models)} models of sizes {model_sizes})" if len(models) > 1 else ""
+        raise Trace3DError(
+            f"{where}: only {len(registered)} of {len(names)} frames registered{several}, below "
+            f"min_registered_fraction {p.min_registered_fraction:g}; missing: {_name_list(missing)}."
+        )
+    if rec.num_points3D() < max(p.min_num_points, 1):
+        raise Trace3DError(
+            f"{where}: degenerate reconstruction with {rec.num_points3D()} triangulated points "
+            f"(fewer than min_num_points {p.min_num_points})."
+        )
+    if missing:
+        log.warning("poses (colmap): %d frame(s) did not register: %s", len(missing), _name_list(missing))
+
+    report: dict = {
+        "mode": "colmap",
+        "images_registered": len(registered),
+        "images_total": len(names),
+        "registered_fraction": fraction,
+        "missing": missing,
+        "num_models": len(models),
+        "model_sizes": model_sizes,
+        "num_verified_pairs": num_verified_pairs,
+        "mean_keypoints_per_image": num_keypoints / len(names),
+        "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
+        "mean_track_length": float(rec.compute_mean_track_length()),
+        "mean_observations_per_image": float(rec.compute_mean_observations_per_reg_image()),
+        "num_points": int(rec.num_points3D()),
+        "single_camera": single,
+        "timings": {k: round(v, 3) for k, v in timings.items()},
+    }
+
+    align = scene_has_reference_poses(scene) if p.align_to_scene is None else p.align_to_scene
+    if align and not scene_has_reference_poses(scene):
+        raise ConfigError(f"{scene.root / 'cameras.json'}: align_to_scene is true but the scene has no usable poses.")
+    filled: list[str] = []
+    if align:
+        report["alignment"] = _align_to_scene(rec, scene, registered)
+        report["frame"] = "scene (SfM mapped by the Sim(3) in 'alignment')"
+    else:
+        report["frame"] = "colmap"
+
+    cameras: list[Camera] = []
+    for cam in scene.cameras:
+        image = registered.get(cam.name)
+        if image is None:
+            if align:
+                cameras.append(dataclasses.replace(cam))
+                filled.append(cam.name)
+            continue
+        colmap_cam = image.camera
+        fx, fy, cx, cy = (float(v) for v in colmap_cam.params)
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        w2c = np.eye(4)
+        w2c[:3, :4] = image.cam_from_world().matrix()
+        cameras.append(Camera(cam.name, cam.split, cam.width, cam.height, K, w2c))
+    report["filled_from_scene"] = filled
+    if p.known_intrinsics is False or p.refine_intrinsics:
+        report["intrinsics"] = _intrinsics_report(cameras, scene)
+
+    model_dir = out_dir / "sparse" / "0"
+    model_dir.mkdir(parents=True, exist_ok=True)
+    rec.write_binary(str(model_dir))
+    write_cameras(out_dir, cameras)
+    point_ids = sorted(rec.points3D)
+    xyz = np.array([rec.points3D[i].xyz for i in point_ids], dtype=np.float64).reshape(-1, 3)
+    rgb = np.array([rec.points3D[i].color for i in point_ids], dtype=np.uint8).reshape(-1, 3)
+    write_points_ply(out_dir / "points3D.ply", xyz, rgb)
+    log.info(
+        "poses (colmap): %d/%d frames registered, %d points, reprojection error %.3f px, track length %.2f%s",
+        len(registered), len(names), len(xyz), report["mean_reprojection_error_px"], report["mean_track_length"],
+        (f", camera-centre error {report['alignment']['center_error_rel_mean']:.2%} mean / "
+         f"{report['alignment']['center_error_rel_max']:.2%} max of the camera diameter") if align else "",
+    )  # fmt: skip
+    return report
+
+
+def _name_list(names: list[str], limit: int = 30) -> str:
+    if len(names) <= limit:
+        return ", ".join(names)
+    return ", ".join(names[:limit]) + f" and {len(names) - limit} more"
+
+
+def _prepare_database(database: Path, scene: Scene, p: PosesParams) -> int:
+    """Install the scene's intrinsics as camera priors (when known); return the total keypoint count."""
+    import pycolmap
+
+    with pycolmap.Database.open(str(database)) as db:
+        images = db.read_all_images()
+        found = {img.name for img in images}
+        absent = [c.name for c in scene.cameras if f"{c.name}.png" not in found]
+        if absent:
+            raise Trace3DError(
+                f"{scene.root / 'images'}: pycolmap could not read the image(s) {_name_list(absent)}."
+            )
+        total = sum(int(db.num_keypoints_for_image(img.image_id)) for img in images)
+        if p.known_intrinsics:
+            by_name = {f"{c.name}.png": c for c in scene.cameras}
+            for img in images:
+                cam = by_name[img.name]
+                colmap_cam = db.read_camera(img.camera_id)
+                colmap_cam.params = [cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]]
+                colmap_cam.has_prior_focal_length = True
+                db.update_camera(colmap_cam)
+    return total
+
+
+def _count_verified_pairs(database: Path, min_inliers: int) -> int:
+    """Image pairs whose two-view geometry has at least ``min_inliers`` inlier matches."""
+    import pycolmap
+
+    with pycolmap.Database.open(str(database)) as db:
+        _, geometries = db.read_two_view_geometries()
+    return sum(1 for g in geometries if len(g.inlier_matches) >= min_inliers)
+
+
+def _mapping_options(p: PosesParams, num_images: int):
+    import pycolmap
+
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.num_threads = p.num_threads
+    opts.random_seed = p.seed
+    opts.min_num_matches = p.min_num_matches
+    opts.min_model_size = min(opts.min_model_size, max(2, num_images // 2))
+    opts.extract_colors = True
+    opts.multiple_models = True
+    refine_focal = p.refine_intrinsics or not p.known_intrinsics
+    opts.ba_refine_focal_length = refine_focal
+    opts.ba_refine_principal_point = p.refine_intrinsics and p.known_intrinsics
+    opts.ba_refine_extra_params = False
+    opts.mapper.abs_pose_refine_focal_length = refine_focal
+    opts.mapper.abs_pose_refine_extra_params = False
+    opts.mapper.init_min_num_inliers = p.init_min_num_inliers
+    opts.mapper.random_seed = p.seed
+    opts.mapper.num_threads = p.num_threads
+    opts.triangulation.random_seed = p.seed
+    return opts
+
+
+def _align_to_scene(rec, scene: Scene, registered: dict) -> dict:
+    """Map ``rec`` (in place) by the Sim(3) aligning its camera centres to the scene's; return errors."""
+    import pycolmap
+
+    names = [c.name for c in scene.cameras if c.name in registered]
+    if len(names) < 3:
+        raise Trace3DError(
+            f"{scene.root}: only {len(names)} frames registered, too few to align the reconstruction "
+            "to the scene's poses (need 3)."
+        )
+    sfm_centres = np.stack([registered[n].projection_center() for n in names])
+    ref_centres = np.stack([scene.camera(n).center for n in names])
+    sim = umeyama(sfm_centres, ref_centres)
+    rec.transform(pycolmap.Sim3d(sim.scale, pycolmap.Rotation3d(sim.rotation), sim.translation))
+    aligned = np.stack([registered[n].projection_center() for n in names])
+    errors = np.linalg.norm(aligned - ref_centres, axis=1)
+    rot_errors = np.array(
+        [rotation_angle_deg(registered[n].cam_from_world().rotation.matrix(), scene.camera(n).rotation) for n in names]
+    )
+    diameter = camera_diameter(np.stack([c.center for c in scene.cameras]))
+    worst = int(np.argmax(errors))
+    return {
+        "applied": True,
+        "sim3_scene_from_colmap": sim.to_json(),
+        "extent": "diameter of the scene's camera centres (largest pairwise distance)",
+        "extent_value": diameter,
+        "center_error_mean": float(errors.mean()),
+        "center_error_max": float(errors.max()),
+        "center_error_rel_mean": float(errors.mean() / diameter),
+        "center_error_rel_max": float(errors.max() / diameter),
+        "center_error_worst_frame": names[worst],
+        "rotation_error_deg_mean": float(rot_errors.mean()),
+        "rotation_error_deg_max": float(rot_errors.max()),
+    }
+
+
+def _intrinsics_report(cameras: list[Camera], scene: Scene) -> dict:
+    """Relative focal-length error of the estimated intrinsics against the scene's K."""
+    rel = []
+    for cam in cameras:
+        ref = scene.camera(cam.name).K
+        rel.append(abs(cam.K[0, 0] - ref[0, 0]) / ref[0, 0])
+        rel.append(abs(cam.K[1, 1] - ref[1, 1]) / ref[1, 1])
+    return {"focal_error_rel_mean": float(np.mean(rel)), "focal_error_rel_max": float(np.max(rel))}
