@@ -284,7 +284,7 @@ def test_missing_instance_maps_refused(tmp_path):
         ("no_traj", r"traj_w_c\.txt is missing"),
         ("bad_traj_line", r"traj_w_c\.txt: line 3 has 15 numbers"),
         ("no_rgb_dir", r"rgb: folder is missing"),
-        ("missing_rgb_file", r"rgb_5\.png: RGB image is missing"),
+        ("missing_rgb_file", r"rgb_5\.png: RGB image is missing \(1 of the 12 selected"),
         ("colour_instance", r"semantic_instance_2\.png: instance map must be a single-channel"),
         ("wrong_size", r"depth_7\.png: image is 16x12 but the sequence is 32x24"),
         ("not_rotation", r"frame 4\).*not a rotation"),
