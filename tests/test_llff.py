@@ -314,3 +314,13 @@ def test_scribble_points_unit():
     one = llff.scribble_points(scribble, 1e-9, np.random.default_rng(0), (2.0, 0.5))
     assert one.shape == (1, 2)  # at least one point survives
     assert llff.scribble_points(np.zeros((5, 5), bool), 0.5, rng, (1, 1)).shape == (0, 2)
+
+
+def test_cli_scene_nvos(nvos_root, tmp_path):
+    from trace3d.cli import main
+
+    root, _ = nvos_root
+    out = tmp_path / "results" / "fern" / "scene"
+    assert main(["scene", "nvos", "--source", str(root), "--params", "{scene: fern}", "--out", str(out)]) == 0
+    scene = Scene.read(out)
+    assert (out / scene.meta["nvos"]["target_mask"]).is_file()

@@ -355,3 +355,17 @@ def test_evaluated_override_and_occlusion_free_views(room0, tmp_path):
     (tmp_path / "bad.json").write_text(json.dumps({"office_0": {}}))
     with pytest.raises(Trace3DError, match=r"bad\.json: expected an object with a 'room_0' entry"):
         do_import(root, tmp_path / "out2", scene="room0", occlusion_free_views=str(tmp_path / "bad.json"))
+
+
+def test_cli_scene_replica(room0, tmp_path, capsys):
+    from trace3d.cli import main
+
+    root, _ = room0
+    out = tmp_path / "results" / "room0" / "scene"
+    assert main(["scene", "replica", "--source", str(root), "--params", "{scene: room0, max_frames: 4}",
+                 "--out", str(out)]) == 0
+    assert len(Scene.read(out).cameras) == 4
+    # a refused source exits 2 with one sentence and leaves no output behind
+    bad = tmp_path / "results" / "bad" / "scene"
+    assert main(["scene", "replica", "--source", str(root), "--params", "{scene: office2}", "--out", str(bad)]) == 2
+    assert "Sequence_1" in capsys.readouterr().err and not bad.exists()
