@@ -324,3 +324,16 @@ def test_cli_scene_nvos(nvos_root, tmp_path):
     assert main(["scene", "nvos", "--source", str(root), "--params", "{scene: fern}", "--out", str(out)]) == 0
     scene = Scene.read(out)
     assert (out / scene.meta["nvos"]["target_mask"]).is_file()
+
+
+def test_read_nvos_labels(nvos_root, tmp_path):
+    root, poses = nvos_root
+    llff.import_nvos(root, tmp_path / "out", llff.params_from({"scene": "fern"}))
+    scene = Scene.read(tmp_path / "out")
+    labels = llff.read_nvos_labels(scene)
+    assert (labels.object, labels.reference_frame, labels.target_frame) == ("fern", "IMG_4038", "IMG_4027")
+    np.testing.assert_array_equal(labels.target_mask, render(poses[0])[1])
+    assert labels.positive_points.shape[1] == 2 and point_rays_hit(scene.camera("IMG_4038"), labels.positive_points).all()
+    llff.import_llff(root / "fern", tmp_path / "plain", llff.params_from({}))
+    with pytest.raises(Trace3DError, match=r"meta\.json: has no 'nvos' entry"):
+        llff.read_nvos_labels(Scene.read(tmp_path / "plain"))

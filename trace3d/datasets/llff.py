@@ -467,3 +467,51 @@ def _write_mask(path: Path, mask: np.ndarray) -> None:
         if not ok:
             raise Trace3DError(f"{path}: could not encode the mask.")
         tmp.write_bytes(buf.tobytes())
+
+
+# ----------------------------------------------------------------------------------------------
+# Reading an imported NVOS scene's labels back
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class NVOSLabels:
+    """The NVOS labels of an imported scene (what ``import_nvos`` wrote).
+
+    Attributes:
+        object: NVOS object name.
+        reference_frame, target_frame: frame names (reference trains, target is the test view).
+        positive_points: [P, 2] (x, y) prompts on the reference view, pixel centres at +0.5.
+        negative_points: [Q, 2] the same for the negative scribble.
+        target_mask: [H, W] bool ground-truth mask of the target view.
+    """
+
+    object: str
+    reference_frame: str
+    target_frame: str
+    positive_points: np.ndarray
+    negative_points: np.ndarray
+    target_mask: np.ndarray
+
+
+def read_nvos_labels(scene) -> NVOSLabels:
+    """:class:`NVOSLabels` of a canonical scene imported by :func:`import_nvos`."""
+    where = scene.root / "meta.json"
+    info = scene.meta.get("nvos") if isinstance(scene.meta, dict) else None
+    if not isinstance(info, dict):
+        raise Trace3DError(f"{where}: has no 'nvos' entry; the scene was not imported with `trace3d scene nvos`.")
+    try:
+        mask_path = scene.root / info["target_mask"]
+        pos = np.asarray(info["positive_points"], dtype=np.float64).reshape(-1, 2)
+        neg = np.asarray(info["negative_points"], dtype=np.float64).reshape(-1, 2)
+        reference, target, obj = info["reference_frame"], info["target_frame"], info["object"]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise Trace3DError(f"{where}: the 'nvos' entry is malformed ({exc}).") from exc
+    mask = cv2.imread(str(mask_path), cv2.IMREAD_UNCHANGED)
+    if mask is None or mask.ndim != 2:
+        raise Trace3DError(f"{mask_path}: NVOS target mask is missing or not a single-channel image.")
+    cam = scene.camera(target)
+    if mask.shape != (cam.height, cam.width):
+        raise Trace3DError(f"{mask_path}: mask is {mask.shape[1]}x{mask.shape[0]} but view {target} is "
+                           f"{cam.width}x{cam.height}.")
+    return NVOSLabels(obj, reference, target, pos, neg, mask > 0)
