@@ -1,6 +1,7 @@
 # Shared helpers: config validation, per-scene parameter merging, code-version hashes.
 import hashlib
 import json
+import os
 import shlex
 from pathlib import Path
 
@@ -61,7 +62,8 @@ def scene_kind_args(wildcards):
         params = shlex.quote(step_params(wildcards.scene, "synthetic"))
         return f"synthetic --params {params}"
     params = shlex.quote(step_params(wildcards.scene, "importer"))
-    return f"{kind} --source {shlex.quote(cfg['source'])} --params {params}"
+    source = os.path.join(config.get("data_root", "."), cfg["source"])
+    return f"{kind} --source {shlex.quote(os.path.normpath(source))} --params {params}"
 
 
 def mask_args(wildcards):
