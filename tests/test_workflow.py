@@ -60,3 +60,29 @@ def test_dry_run_default_config():
     assert result.returncode == 0, result.stderr
     for scene in ("room0", "room1", "room2", "room3"):
         assert f"scene={scene}" in result.stdout
+
+
+TINY_SYNTHETIC = {"width": 48, "height": 36, "num_views": 6, "test_every": 3, "num_objects": 10, "supersample": 1}
+
+
+@pytest.mark.slow
+def test_end_to_end_tiny(tmp_path):
+    config = {
+        "defaults": {"synthetic": TINY_SYNTHETIC},
+        "scenes": {"a": {"kind": "synthetic", "synthetic": {"seed": 1}},
+                   "b": {"kind": "synthetic", "synthetic": {"seed": 2}}},
+    }
+    result = run_snakemake(tmp_path, "--cores", "2", "reproduce", config=config)
+    assert result.returncode == 0, result.stderr[-4000:]
+    for scene in ("a", "b"):
+        root = tmp_path / "results" / scene / "scene"
+        assert len(list((root / "images").glob("*.png"))) == 6
+        assert (root / "preview.png").stat().st_size > 1000
+        assert (tmp_path / "results" / "logs" / scene / "scene.log").is_file()
+        assert (tmp_path / "results" / "benchmarks" / scene / "scene.tsv").is_file()
+    table = (tmp_path / "results" / "scenes.md").read_text()
+    assert "| a " in table and "| b " in table and "48x36" in table
+    # nothing left to do: a second run is a no-op
+    again = run_snakemake(tmp_path, "--cores", "2", "reproduce", "-n", config=config)
+    assert again.returncode == 0
+    assert "Nothing to be done" in again.stdout + again.stderr
