@@ -1198,7 +1198,7 @@ class _RoomBuilder:
             # chairs at both long sides, pushed 0.12 m under the table
             chairs = []
             for side in (-1, 1):
-                for off in ((-0.3, 0.3) if table.half_x > 0.65 else (0.0,)):
+                for off in ((-0.28, 0.28) if table.half_x > 0.65 else (0.0,)):
                     cy = side * (table.half_y + 0.22 - 0.12)
                     chairs.append((np.array([off, cy, 0.0]), math.pi if side > 0 else 0.0))
             rect = self.world_rect(origin, rotation, table.half_x + 0.05, table.half_y + 0.35)
@@ -1210,7 +1210,7 @@ class _RoomBuilder:
             for local, chair_yaw in chairs:
                 if self.room_left() <= 0:
                     break
-                jitter = r.uniform(-0.2, 0.2)
+                jitter = r.uniform(-0.1, 0.1)
                 self.place(self.spec_chair(wood, fabric), origin + rotation @ local, rotation @ rot_z(chair_yaw + jitter), parent=group)
             self.surfaces.append(_Surface(origin + rotation @ np.array([0, 0, table.height]), rotation,
                                           table.half_x - 0.04, table.half_y - 0.04, 0.6, group))
@@ -1311,25 +1311,27 @@ class _RoomBuilder:
         r = self.rng
         w, d, h = r.uniform(0.8, 1.4), r.uniform(0.4, 0.5), r.uniform(0.7, 0.9)
         body = self.texture(str(r.choice(["wood", "paint"])))
-        front = self.texture("paint")
+        front_tex = self.texture("paint")
         knob = self.texture("metal")
-        parts = [LocalPart("body", SHAPE_BOX, (0, 0, h / 2 + 0.03), (w / 2, d / 2, h / 2 - 0.03), body),
-                 LocalPart("plinth", SHAPE_BOX, (0, -0.03, 0.015), (w / 2 - 0.03, d / 2 - 0.03, 0.015), dataclasses.replace(body, seed=body.seed + 9))]
+        front = 0.055  # drawer fronts and knobs stick out this far
+        yb = -front / 2  # body centre: its back touches the local -y side of the footprint
+        parts = [LocalPart("body", SHAPE_BOX, (0, yb, h / 2 + 0.03), (w / 2, d / 2, h / 2 - 0.03), body),
+                 LocalPart("plinth", SHAPE_BOX, (0, yb, 0.015), (w / 2 - 0.03, d / 2 - 0.03, 0.015), dataclasses.replace(body, seed=body.seed + 9))]
         n_drawers = int(r.integers(2, 4))
         dh = (h - 0.1) / n_drawers
         for i in range(n_drawers):
             zc = 0.06 + dh * (i + 0.5)
-            parts.append(LocalPart(f"drawer_{i + 1}", SHAPE_BOX, (0, d / 2 + 0.01, zc), (w / 2 - 0.04, 0.01, dh / 2 - 0.015),
-                                   dataclasses.replace(front, seed=front.seed + i)))
-            parts.append(LocalPart(f"knob_{i + 1}", SHAPE_ELLIPSOID, (0, d / 2 + 0.035, zc), (0.03, 0.018, 0.03), knob))
-        spec = ObjectSpec("cabinet", "cabinet", parts, w / 2, d / 2 + 0.05, h)
+            parts.append(LocalPart(f"drawer_{i + 1}", SHAPE_BOX, (0, yb + d / 2 + 0.01, zc), (w / 2 - 0.04, 0.01, dh / 2 - 0.015),
+                                   dataclasses.replace(front_tex, seed=front_tex.seed + i)))
+            parts.append(LocalPart(f"knob_{i + 1}", SHAPE_ELLIPSOID, (0, yb + d / 2 + 0.035, zc), (0.03, 0.018, 0.03), knob))
+        spec = ObjectSpec("cabinet", "cabinet", parts, w / 2, d / 2 + front / 2, h)
         placed = self._against_wall(spec)
         if placed is None:
             return False
         origin, rotation, _ = placed
         group = self.new_group("cabinet_set")
         self.place(spec, origin, rotation, parent=group)
-        surface = _Surface(origin + rotation @ np.array([0, -0.05, h]), rotation, w / 2 - 0.03, d / 2 - 0.03, 0.8, group)
+        surface = _Surface(origin + rotation @ np.array([0, yb, h]), rotation, w / 2 - 0.03, d / 2 - 0.03, 0.8, group)
         self.surfaces.append(surface)
         if self.room_left() > 0:
             self.place_on(surface, "table_lamp")
