@@ -26,3 +26,5 @@ rule reproduce:
     default_target: True
     input:
         f"{RESULTS}/scenes.md",
+        expand(f"{RESULTS}/{{scene}}/patches", scene=SCENES),
+        f"{RESULTS}/reconstruction.md",

@@ -16,3 +16,27 @@ rule scenes_table:
         ENV
     shell:
         "trace3d summary {input} --out {output} > {log} 2>&1"
+
+
+rule reconstruction_table:
+    input:
+        poses=expand(f"{RESULTS}/{{scene}}/poses", scene=SCENES),
+        gaussians=expand(f"{RESULTS}/{{scene}}/gaussians", scene=SCENES),
+    output:
+        table=report(
+            f"{RESULTS}/reconstruction.md",
+            category="Reconstruction",
+            caption="../workflow/report/reconstruction.rst",
+        ),
+        plot=report(
+            f"{RESULTS}/plots/reconstruction.png",
+            category="Reconstruction",
+            caption="../workflow/report/reconstruction.rst",
+        ),
+    log:
+        f"{RESULTS}/logs/reconstruction_table.log",
+    conda:
+        ENV
+    shell:
+        "trace3d reconstruction-table --poses {input.poses} --gaussians {input.gaussians}"
+        " --out {output.table} --plot {output.plot} > {log} 2>&1"

@@ -147,6 +147,15 @@ def _cmd_summary(args: argparse.Namespace) -> None:
     write_scene_table([Path(p) for p in args.scenes], Path(args.out))
 
 
+def _cmd_reconstruction_table(args: argparse.Namespace) -> None:
+    from .report.summary import write_reconstruction_table
+
+    write_reconstruction_table(
+        [Path(p) for p in args.poses], [Path(g) for g in args.gaussians], Path(args.out),
+        Path(args.plot) if args.plot else None,
+    )
+
+
 # ----------------------------------------------------------------------------------------------
 # parser
 # ----------------------------------------------------------------------------------------------
@@ -200,6 +209,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scenes", nargs="+", help="scene folders")
     p.add_argument("--out", required=True)
     p.set_defaults(func=_cmd_summary)
+
+    p = sub.add_parser("reconstruction-table", help="write the reconstruction table (poses + 2DGS fit per scene)")
+    p.add_argument("--poses", nargs="+", required=True, help="poses folders, one per scene")
+    p.add_argument("--gaussians", nargs="+", required=True, help="gaussians folders, same order")
+    p.add_argument("--out", required=True, help="Markdown table (a CSV is written beside it)")
+    p.add_argument("--plot", help="PNG bar plot of test PSNR and minutes per scene")
+    p.set_defaults(func=_cmd_reconstruction_table)
 
     p = sub.add_parser("bench", help="benchmarks; print one JSON object")
     p.add_argument("name", choices=["render", "synthetic"])
