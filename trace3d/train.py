@@ -105,6 +105,10 @@ class TrainParams:
     max_world_size: float = 0.1  # fraction of the scene extent; used after the first opacity reset
     split_count: int = 2
     max_gaussians: int = 1_000_000  # densification stops growing beyond this count
+    # After an opacity reset, density control does not prune by opacity for this many iterations
+    # (NOT scaled: it is set by how fast Adam raises the opacities again; 2DGS's first prune after a
+    # reset comes one densify interval = 100 iterations later).
+    opacity_reset_grace: int = 100
     # --- misc -----------------------------------------------------------------------------------
     background: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     random_background: bool = False
@@ -313,13 +317,16 @@ class GaussianOptimizer:
         return torch.where(self.grad_count > 0, self.grad_accum / self.grad_count.clamp_min(1), torch.zeros_like(self.grad_accum))
 
     @torch.no_grad()
-    def densify_and_prune(self, use_size_limits: bool, generator: torch.Generator | None = None) -> dict[str, int]:
+    def densify_and_prune(self, use_size_limits: bool, generator: torch.Generator | None = None,
+                          prune_by_opacity: bool = True) -> dict[str, int]:
         """One 2DGS densification step: clone, split, then prune; resets the statistics.
 
         Args:
             use_size_limits: also prune Gaussians larger than ``max_screen_size`` pixels or
                 ``max_world_size`` x extent (2DGS: after the first opacity reset).
             generator: random source for the split positions.
+            prune_by_opacity: prune Gaussians with opacity below ``opacity_cull`` (off shortly
+                after an opacity reset).
         Returns:
             counts {"cloned", "split", "pruned", "total"}.
         """
@@ -344,6 +351,8 @@ class GaussianOptimizer:
             self.keep(keep)
 
         prune_mask = self.model.opacities < p.opacity_cull
+        if not prune_by_opacity:
+            prune_mask[:] = False
         if use_size_limits:
             prune_mask |= self.max_radii > p.max_screen_size
             prune_mask |= self.model.scales.max(dim=1).values > p.max_world_size * self.extent
@@ -499,6 +508,7 @@ def fit(
     checkpoint, checkpoint_iteration = state.model.detached_copy("cpu"), 0
     order: list[int] = []
     active_sh = 0
+    last_reset = -params.opacity_reset_grace
     start = time.perf_counter()
     sums = {"loss": 0.0, "l1": 0.0, "ssim": 0.0, "normal": 0.0, "distortion": 0.0, "psnr": 0.0}
     sums_count = 0
@@ -523,7 +533,8 @@ def fit(
         normal_term = torch.zeros((), device=device)
         dist_term = torch.zeros((), device=device)
         if lambda_normal > 0:
-            expected = torch.nan_to_num(out.depth / out.alpha, nan=0.0, posinf=0.0, neginf=0.0)
+            covered = out.alpha > 1e-6
+            expected = torch.where(covered, out.depth / out.alpha.clamp_min(1e-6), torch.zeros_like(out.depth))
             surface_depth = expected * (1.0 - params.depth_ratio) + out.median_depth * params.depth_ratio
             surface_normal = depth_to_normal(surface_depth, camera.K)
             normal_term = normal_consistency_loss(out.normal, surface_normal, out.alpha)
@@ -533,7 +544,7 @@ def fit(
             loss = loss + lambda_dist * dist_term
 
         if not torch.isfinite(loss):
-            _diverged(f"the loss became {float(loss)} at iteration {iteration}", iteration, checkpoint,
+            _diverged(f"the loss became {float(loss.detach())} at iteration {iteration}", iteration, checkpoint,
                       checkpoint_iteration, history)
         loss.backward()
         if not all(bool(torch.isfinite(p.grad).all()) for p in state.model.tensors().values() if p.grad is not None):
@@ -543,13 +554,17 @@ def fit(
         with torch.no_grad():
             if params.densify and iteration < schedule["densify_until"]:
                 grad2d = out.means2d.grad if out.means2d.grad is not None else torch.zeros_like(out.means2d)
-                state.add_stats(grad2d, out.visible, screen_radii(state.model, camera), camera.width, camera.height)
+                radii = out.radii if getattr(out, "radii", None) is not None else screen_radii(state.model, camera)
+                state.add_stats(grad2d, out.visible, radii, camera.width, camera.height)
                 if iteration > schedule["densify_from"] and iteration % schedule["densify_interval"] == 0:
-                    event = state.densify_and_prune(iteration > schedule["opacity_reset_interval"], generator)
+                    event = state.densify_and_prune(
+                        iteration > schedule["opacity_reset_interval"], generator,
+                        prune_by_opacity=iteration - last_reset >= params.opacity_reset_grace)
                     event["iteration"] = iteration
                     densify_events.append(event)
                 if iteration % schedule["opacity_reset_interval"] == 0:
                     state.reset_opacity()
+                    last_reset = iteration
             state.step()
             if not state.model.is_finite():
                 _diverged(f"a parameter became non-finite at iteration {iteration}", iteration, checkpoint,
@@ -559,7 +574,7 @@ def fit(
 
         sums_count += 1
         for key, value in (("loss", loss), ("l1", l1), ("ssim", s), ("normal", normal_term), ("distortion", dist_term)):
-            sums[key] += float(value)
+            sums[key] += float(value.detach())
         sums["psnr"] += psnr(out.features.detach().clamp(0, 1), target)
         if iteration % params.log_interval == 0 or iteration == iterations:
             row = {"iteration": iteration, **{k: v / sums_count for k, v in sums.items()},

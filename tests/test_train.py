@@ -1,0 +1,429 @@
+"""Tests of trace3d.losses and trace3d.train: losses, density control, the loop and the step."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from trace3d.errors import ConfigError, Trace3DError
+from trace3d.gaussians import GaussianModel, init_from_points
+from trace3d.losses import _ssim_map_reference, depth_to_normal, depth_to_points, normal_consistency_loss, photometric_loss, psnr, ssim, ssim_map
+from trace3d.params import from_mapping
+from trace3d.pointcloud import write_points_ply
+from trace3d.scene import Camera, Scene, write_cameras, write_frame
+from trace3d.train import (
+    GaussianOptimizer,
+    TrainingDiverged,
+    TrainParams,
+    evaluate_views,
+    exponential_lr,
+    failed_dir_for,
+    fit,
+    run_gaussians,
+    scene_extent,
+    split_gaussians,
+)
+
+# ----------------------------------------------------------------------------------------------
+# A tiny scene: a smoothly textured plane z = 3 seen by cameras on a small circle (exact images)
+# ----------------------------------------------------------------------------------------------
+
+PLANE_Z = 3.0
+
+
+def look_at(center: np.ndarray, target: np.ndarray) -> np.ndarray:
+    z = target - center
+    z = z / np.linalg.norm(z)
+    x = np.cross(np.array([0.0, 1.0, 0.0]), z)
+    x = x / np.linalg.norm(x)
+    y = np.cross(z, x)
+    w2c = np.eye(4)
+    w2c[:3, :3] = np.stack([x, y, z])
+    w2c[:3, 3] = -w2c[:3, :3] @ center
+    return w2c
+
+
+def texture(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    return np.stack(
+        [
+            0.5 + 0.35 * np.sin(3 * x + 0.5) * np.cos(2 * y),
+            0.5 + 0.35 * np.cos(2.5 * x - 1.5 * y),
+            0.45 + 0.3 * np.sin(4 * y + x),
+        ],
+        axis=-1,
+    )
+
+
+def plane_views(count: int, width: int = 32, height: int = 24, split=lambda i: "train"):
+    """``count`` cameras looking at the plane and their exact images [H, W, 3] float."""
+    K = np.array([[30.0, 0, width / 2], [0, 30.0, height / 2], [0, 0, 1]])
+    cameras, images = [], []
+    xs, ys = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    rays_cam = np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones_like(xs)], -1)
+    for i in range(count):
+        angle = 2 * math.pi * i / count
+        center = np.array([0.4 * math.cos(angle), 0.3 * math.sin(angle), 0.0])
+        cam = Camera(f"v{i:02d}", split(i), width, height, K, look_at(center, np.array([0.0, 0.0, PLANE_Z])))
+        rays = rays_cam @ cam.rotation  # camera -> world directions (R^T d)
+        t = (PLANE_Z - cam.center[2]) / rays[..., 2]
+        hits = cam.center + rays * t[..., None]
+        cameras.append(cam)
+        images.append(torch.tensor(texture(hits[..., 0], hits[..., 1]), dtype=torch.float32))
+    return cameras, images
+
+
+def plane_points(count: int = 300, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    pts = np.concatenate([rng.uniform(-2, 2, (count, 2)), np.full((count, 1), PLANE_Z)], 1)
+    return pts + rng.normal(0, 0.05, (count, 3))
+
+
+def tiny_params(**overrides) -> TrainParams:
+    values = dict(
+        schedule_scale=1.0, iterations=200, densify_from=50, densify_until=150, densify_interval=25,
+        opacity_reset_interval=1000, normal_from=100, sh_degree_interval=50, sh_degree=1, device="cpu",
+    )
+    values.update(overrides)
+    return TrainParams(**values)
+
+
+# ----------------------------------------------------------------------------------------------
+# Losses
+# ----------------------------------------------------------------------------------------------
+
+
+class TestSSIM:
+    def test_identical_is_one_and_bounded(self):
+        g = torch.Generator().manual_seed(0)
+        a = torch.rand(20, 24, 3, generator=g)
+        assert float(ssim(a, a)) == pytest.approx(1.0, abs=1e-6)
+        b = torch.rand(20, 24, 3, generator=g)
+        assert -1.0 <= float(ssim(a, b)) < 0.5
+
+    def test_matches_skimage_away_from_the_border(self):
+        from skimage.metrics import structural_similarity
+
+        rng = np.random.default_rng(1)
+        a = rng.random((30, 34, 3))
+        b = np.clip(a + rng.normal(0, 0.1, a.shape), 0, 1)
+        _, full = structural_similarity(a, b, channel_axis=2, gaussian_weights=True, sigma=1.5,
+                                        use_sample_covariance=False, data_range=1.0, full=True)
+        ours = ssim_map(torch.tensor(a), torch.tensor(b))[0].permute(1, 2, 0).numpy()
+        np.testing.assert_allclose(ours[5:-5, 5:-5], full[5:-5, 5:-5], atol=1e-6)
+
+    def test_separable_matches_2d_window_reference_with_gradients(self):
+        g = torch.Generator().manual_seed(2)
+        a = torch.rand(2, 19, 23, 3, generator=g, dtype=torch.float64, requires_grad=True)
+        b = torch.rand(2, 19, 23, 3, generator=g, dtype=torch.float64)
+        fast = ssim_map(a, b)
+        slow = _ssim_map_reference(a, b)
+        torch.testing.assert_close(fast, slow, rtol=1e-10, atol=1e-12)
+        upstream = torch.rand(fast.shape, generator=g, dtype=torch.float64)
+        (grad_fast,) = torch.autograd.grad((fast * upstream).sum(), a)
+        (grad_slow,) = torch.autograd.grad((slow * upstream).sum(), a)
+        torch.testing.assert_close(grad_fast, grad_slow, rtol=1e-9, atol=1e-12)
+
+    def test_gradcheck(self):
+        g = torch.Generator().manual_seed(2)
+        a = torch.rand(5, 6, 1, generator=g, dtype=torch.float64, requires_grad=True)
+        b = torch.rand(5, 6, 1, generator=g, dtype=torch.float64)
+        assert torch.autograd.gradcheck(lambda x: ssim(x, b), (a,))
+
+    def test_photometric_loss_weights(self):
+        a = torch.zeros(16, 16, 3)
+        b = torch.full((16, 16, 3), 0.5)
+        loss, l1, s = photometric_loss(a, b, lambda_dssim=0.2)
+        assert float(l1) == pytest.approx(0.5)
+        assert float(loss) == pytest.approx(0.8 * 0.5 + 0.2 * (1 - float(s)))
+        assert psnr(a, b) == pytest.approx(-10 * math.log10(0.25))
+
+
+class TestDepthNormal:
+    K = np.array([[20.0, 0, 10.0], [0, 22.0, 8.0], [0, 0, 1]])
+
+    def plane_depth(self, normal: np.ndarray, offset: float, height=16, width=20) -> torch.Tensor:
+        """Depth (camera z) of the plane n . X = offset seen by camera K at the origin."""
+        xs, ys = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+        rays = np.stack([(xs - self.K[0, 2]) / self.K[0, 0], (ys - self.K[1, 2]) / self.K[1, 1], np.ones_like(xs)], -1)
+        return torch.tensor(offset / (rays @ normal), dtype=torch.float64)
+
+    def test_points_reproject_to_pixel_centres(self):
+        depth = torch.full((6, 7), 2.5, dtype=torch.float64)
+        pts = depth_to_points(depth, self.K)
+        uv = (pts @ torch.tensor(self.K).T)
+        uv = uv[..., :2] / uv[..., 2:]
+        assert torch.allclose(uv[2, 3], torch.tensor([3.5, 2.5], dtype=torch.float64))
+
+    def test_tilted_plane_normal_faces_camera(self):
+        normal = np.array([0.3, -0.2, -1.0])
+        normal /= np.linalg.norm(normal)  # facing the camera (negative z)
+        depth = self.plane_depth(normal, offset=-3.0)
+        assert (depth > 0).all()
+        got = depth_to_normal(depth, self.K)
+        assert torch.allclose(got[1:-1, 1:-1], torch.tensor(normal).expand(14, 18, 3), atol=1e-9)
+        assert (got[0] == 0).all() and (got[:, -1] == 0).all()
+
+    def test_normal_consistency_zero_when_aligned(self):
+        n = torch.nn.functional.normalize(torch.randn(5, 6, 3), dim=-1)
+        alpha = torch.ones(5, 6)
+        assert float(normal_consistency_loss(n, n, alpha)) == pytest.approx(0.0, abs=1e-6)
+        assert float(normal_consistency_loss(n, -n, alpha)) == pytest.approx(2.0, abs=1e-6)
+
+
+# ----------------------------------------------------------------------------------------------
+# Schedule and parameters
+# ----------------------------------------------------------------------------------------------
+
+
+def test_exponential_lr_endpoints_and_monotone():
+    assert exponential_lr(0, 1.6e-4, 1.6e-6, 100) == pytest.approx(1.6e-4)
+    assert exponential_lr(100, 1.6e-4, 1.6e-6, 100) == pytest.approx(1.6e-6)
+    assert exponential_lr(50, 1.6e-4, 1.6e-6, 100) == pytest.approx(1.6e-5)
+    assert exponential_lr(500, 1.6e-4, 1.6e-6, 100) == pytest.approx(1.6e-6)
+
+
+def test_schedule_scaling_and_reference_defaults():
+    ref = TrainParams(schedule_scale=1.0).schedule()
+    assert ref == {"iterations": 30000, "densify_from": 500, "densify_until": 15000, "densify_interval": 100,
+                   "opacity_reset_interval": 3000, "sh_degree_interval": 1000, "normal_from": 7000,
+                   "distortion_from": 3000, "checkpoint_interval": 1000}
+    half = TrainParams(schedule_scale=0.5).schedule()
+    assert half["iterations"] == 15000 and half["densify_interval"] == 50
+    assert TrainParams(schedule_scale=1e-4).scaled("densify_interval") == 1  # never 0
+
+
+def test_params_validation():
+    with pytest.raises(ConfigError, match="unknown"):
+        from_mapping(TrainParams, {"iteratons": 5})
+    with pytest.raises(ConfigError, match="sh_degree"):
+        from_mapping(TrainParams, {"sh_degree": 4})
+    with pytest.raises(ConfigError):
+        from_mapping(TrainParams, {"schedule_scale": 0})
+    p = from_mapping(TrainParams, {"iterations": 7, "background": [1, 1, 1]})
+    assert p.iterations == 7 and p.background == [1.0, 1.0, 1.0]
+
+
+def test_scene_extent():
+    cams = [Camera(f"c{i}", "train", 4, 4, np.eye(3), np.eye(4)) for i in range(2)]
+    cams[1].world_to_camera[0, 3] = -2.0  # centre at x = 2
+    assert scene_extent(cams) == pytest.approx(1.1)
+    assert scene_extent(cams[:1]) == 1.0
+
+
+# ----------------------------------------------------------------------------------------------
+# Density control on constructed cases
+# ----------------------------------------------------------------------------------------------
+
+
+def constructed_model() -> GaussianModel:
+    """Six Gaussians, ordered: small-hot, large-hot, cold, transparent, huge, ordinary."""
+    n = 6
+    scales = torch.tensor([[0.005, 0.002], [0.05, 0.03], [0.005, 0.005], [0.005, 0.005], [0.5, 0.1], [0.02, 0.02]])
+    opac = torch.tensor([0.5, 0.5, 0.5, 0.01, 0.5, 0.5])
+    return GaussianModel(
+        means=torch.arange(n, dtype=torch.float32)[:, None] * torch.tensor([1.0, 0.0, 0.0]),
+        quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+        log_scales=scales.log(),
+        opacity_logits=torch.logit(opac),
+        sh_dc=torch.arange(n, dtype=torch.float32)[:, None, None].repeat(1, 1, 3),
+        sh_rest=torch.zeros(n, 3, 3),
+    )
+
+
+def constructed_state(**overrides) -> GaussianOptimizer:
+    # extent 1: clone when max scale <= 0.01, split above; world-size prune above 0.1
+    params = tiny_params(**overrides)
+    state = GaussianOptimizer(constructed_model(), params, extent=1.0)
+    # mean NDC gradients: hot = 1e-3 (above 2e-4), cold = 1e-5; seen by 2 views
+    hot = torch.tensor([1e-3, 1e-3, 1e-5, 1e-5, 1e-5, 1e-5])
+    state.grad_accum = hot * 2
+    state.grad_count = torch.full((6,), 2.0)
+    state.max_radii = torch.tensor([1.0, 5.0, 1.0, 1.0, 4.0, 30.0])  # the last is too large on screen
+    # give Adam moments we can follow through the edits
+    for group in state.optimizer.param_groups:
+        param = group["params"][0]
+        state.optimizer.state[param] = {
+            "step": torch.tensor(3.0),
+            "exp_avg": torch.ones_like(param) * torch.arange(6).view(-1, *[1] * (param.ndim - 1)),
+            "exp_avg_sq": torch.ones_like(param),
+        }
+    return state
+
+
+def test_densify_clones_splits_and_prunes_without_size_limits():
+    state = constructed_state()
+    before = state.model.detached_copy()
+    event = state.densify_and_prune(use_size_limits=False, generator=torch.Generator().manual_seed(0))
+    assert event == {"cloned": 1, "split": 1, "pruned": 1, "total": 7}
+    ids = state.model.sh_dc[:, 0, 0].round().long().tolist()
+    # originals except the split (1) and the transparent (3) one, then the clone of 0, then 2 children of 1
+    assert ids == [0, 2, 4, 5, 0, 1, 1]
+    # clone: identical copy
+    torch.testing.assert_close(state.model.means[4], before.means[0])
+    torch.testing.assert_close(state.model.log_scales[4], before.log_scales[0])
+    # split children: scales / (0.8 * 2), centres on the parent's disk (z offset 0: normal is +z)
+    torch.testing.assert_close(state.model.scales[5:], before.scales[1].expand(2, 2) / 1.6)
+    offsets = state.model.means[5:] - before.means[1]
+    assert (offsets[:, 2].abs() < 1e-7).all() and (offsets[:, :2].abs() > 0).any()
+    assert not torch.allclose(state.model.means[5], state.model.means[6])
+    # Adam moments follow the survivors; new Gaussians start at zero
+    exp_avg = state.optimizer.state[state.model.means]["exp_avg"][:, 0]
+    torch.testing.assert_close(exp_avg, torch.tensor([0.0, 2, 4, 5, 0, 0, 0]))
+    for group in state.optimizer.param_groups:
+        assert group["params"][0] is getattr(state.model, group["name"])
+        assert state.optimizer.state[group["params"][0]]["exp_avg"].shape == group["params"][0].shape
+    # statistics are reset
+    assert state.grad_accum.shape == (7,) and float(state.grad_accum.abs().sum()) == 0.0
+
+
+def test_densify_size_limits_prune_huge_and_screen_large():
+    state = constructed_state()
+    event = state.densify_and_prune(use_size_limits=True, generator=torch.Generator().manual_seed(0))
+    # also pruned: 4 (world size 0.5 > 0.1 x extent) and 5 (30 px > 20 px on screen)
+    assert event["pruned"] == 3
+    assert state.model.sh_dc[:, 0, 0].round().long().tolist() == [0, 2, 0, 1, 1]
+
+
+def test_densify_respects_opacity_grace_and_growth_cap():
+    state = constructed_state()
+    event = state.densify_and_prune(use_size_limits=False, prune_by_opacity=False)
+    assert event["pruned"] == 0 and event["total"] == 8
+    capped = constructed_state(max_gaussians=7)  # room for one more: the clone (same gradient; cheaper first)
+    event = capped.densify_and_prune(use_size_limits=False)
+    assert event["cloned"] + event["split"] == 1 and len(capped) <= 7
+
+
+def test_split_gaussians_statistics():
+    parent = constructed_model().subset(torch.tensor([1]))
+    parent.quats[:] = torch.tensor([0.7071068, 0.7071068, 0.0, 0.0])  # 90 deg about x: t_v -> z
+    children = split_gaussians(parent, 2, torch.Generator().manual_seed(0))
+    assert len(children) == 2
+    many = split_gaussians(parent.map(lambda t: t.repeat(*([4000] + [1] * (t.ndim - 1)))), 2,
+                           torch.Generator().manual_seed(1))
+    offsets = many.means - parent.means
+    std = offsets.std(dim=0)
+    # s_u = 0.05 along x, s_v = 0.03 along t_v = z after the rotation, nothing along the normal (y)
+    torch.testing.assert_close(std, torch.tensor([0.05, 0.0, 0.03]), atol=2e-3, rtol=0)
+
+
+def test_reset_opacity_caps_and_zeroes_moments():
+    state = constructed_state()
+    state.reset_opacity(0.01)
+    opacities = state.model.opacities.detach()
+    assert float(opacities.max()) == pytest.approx(0.01, rel=1e-4)
+    moments = state.optimizer.state[state.model.opacity_logits]
+    assert float(moments["exp_avg"].abs().sum()) == 0.0
+
+
+# ----------------------------------------------------------------------------------------------
+# The loop
+# ----------------------------------------------------------------------------------------------
+
+
+def test_fit_reduces_loss_and_reaches_psnr_on_tiny_scene():
+    cameras, images = plane_views(6)
+    model = init_from_points(plane_points(), np.full((300, 3), 0.5), sh_degree=1, seed=0)
+    params = tiny_params()
+    before, _ = evaluate_views(model, cameras, images, 1, None)
+    result = fit(model, cameras, images, params, progress=False)
+    after, _ = evaluate_views(result.model, cameras, images, 1, None)
+    assert result.history[-1]["loss"] < 0.5 * result.history[0]["loss"]
+    assert np.mean([r["psnr"] for r in before]) < 15.0
+    assert np.mean([r["psnr"] for r in after]) > 25.0
+    assert any(e["split"] + e["cloned"] > 0 for e in result.densify_events)
+    assert len(result.model) > 300
+    # deterministic from the seed
+    again = fit(model, cameras, images, tiny_params(iterations=20, densify=False), progress=False)
+    again2 = fit(model, cameras, images, tiny_params(iterations=20, densify=False), progress=False)
+    torch.testing.assert_close(again.model.means, again2.model.means)
+
+
+def test_fit_divergence_raises_with_last_good_checkpoint():
+    cameras, images = plane_views(4)
+    images[2] = images[2].clone()
+    images[2][3, 4, 1] = float("nan")  # the loss is NaN whenever view 2 is drawn
+    model = init_from_points(plane_points(60), np.full((60, 3), 0.5), sh_degree=0, seed=0)
+    with pytest.raises(TrainingDiverged, match="diverged") as info:
+        fit(model, cameras, images, tiny_params(iterations=50, checkpoint_interval=1, densify=False, log_interval=1),
+            progress=False)
+    exc = info.value
+    assert exc.iteration >= 1 and exc.checkpoint_iteration == exc.iteration - 1
+    assert exc.checkpoint.is_finite() and len(exc.checkpoint) == 60
+    assert len(exc.history) == exc.iteration - 1
+
+
+# ----------------------------------------------------------------------------------------------
+# The pipeline step
+# ----------------------------------------------------------------------------------------------
+
+
+def write_plane_scene(root, count=6):
+    cameras, images = plane_views(count, split=lambda i: "test" if i % 3 == 2 else "train")
+    for cam, img in zip(cameras, images):
+        write_frame(root, cam.name, (img.numpy() * 255).round().astype(np.uint8))
+    write_cameras(root, cameras)
+    return Scene.read(root)
+
+
+STEP_PARAMS = {"schedule_scale": 1.0, "iterations": 60, "densify_from": 20, "densify_until": 50,
+               "densify_interval": 10, "normal_from": 30, "sh_degree": 1, "sh_degree_interval": 20,
+               "random_init_count": 300, "device": "cpu", "num_render_views": 2}
+
+
+def test_run_gaussians_writes_all_outputs(tmp_path):
+    scene = write_plane_scene(tmp_path / "scene")
+    poses = tmp_path / "poses"
+    poses.mkdir()
+    # poses: the scene's cameras (all views), and a point cloud on the plane
+    write_cameras(poses, scene.cameras)
+    write_points_ply(poses / "points3D.ply", plane_points(200).astype(np.float32), np.full((200, 3), 128, np.uint8))
+    out = tmp_path / "gaussians"
+    run_gaussians(scene, poses, out, dict(STEP_PARAMS))
+    for name in ("point_cloud.ply", "train.csv", "metrics.json", "config.json", "cameras.json", "train_curve.png",
+                 "renders.png"):
+        assert (out / name).is_file(), name
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["init"] == "points" and metrics["num_test_views"] == 2 and metrics["num_train_views"] == 4
+    assert len(metrics["test_views"]) == 2 and metrics["test_psnr"] > 12
+    assert metrics["num_gaussians"] == len(GaussianModel.read_ply(out / "point_cloud.ply"))
+    config = json.loads((out / "config.json").read_text())
+    assert config["params"]["iterations"] == 60 and config["schedule"]["iterations"] == 60
+    lines = (out / "train.csv").read_text().splitlines()
+    assert lines[0].startswith("iteration,loss,l1,ssim,normal,distortion,psnr,gaussians")
+    assert len(lines) == 1 + 6
+
+
+def test_run_gaussians_random_init_and_bad_params(tmp_path):
+    scene = write_plane_scene(tmp_path / "scene")
+    with pytest.raises(ConfigError, match="unknown"):
+        run_gaussians(scene, None, tmp_path / "x", {"bogus": 1})
+    with pytest.raises(ConfigError, match="points"):
+        run_gaussians(scene, None, tmp_path / "x", {"init": "points"})
+    run_gaussians(scene, None, tmp_path / "out", dict(STEP_PARAMS, iterations=10, densify=False))
+    assert json.loads((tmp_path / "out" / "metrics.json").read_text())["init"] == "random"
+
+
+def test_run_gaussians_missing_test_pose(tmp_path):
+    scene = write_plane_scene(tmp_path / "scene")
+    poses = tmp_path / "poses"
+    write_cameras(poses, [c for c in scene.cameras if c.split == "train"])
+    with pytest.raises(Trace3DError, match="test views"):
+        run_gaussians(scene, poses, tmp_path / "out", dict(STEP_PARAMS))
+
+
+def test_run_gaussians_divergence_keeps_checkpoint_beside_output(tmp_path):
+    scene = write_plane_scene(tmp_path / "scene")
+    out = tmp_path / ".gaussians.tmp-123-abcdef12"  # the CLI's temporary name for results/.../gaussians
+    params = dict(STEP_PARAMS, feature_lr=1e30, checkpoint_interval=1, densify=False)
+    with pytest.raises(Trace3DError, match="checkpoint_last_good.ply") as info:
+        run_gaussians(scene, None, out, params)
+    failed = tmp_path / "gaussians.failed"
+    assert failed_dir_for(out) == failed
+    assert str(failed) in str(info.value)
+    kept = GaussianModel.read_ply(failed / "checkpoint_last_good.ply")
+    assert kept.is_finite() and len(kept) == 300
+    assert json.loads((failed / "failure.json").read_text())["iteration"] >= 2
