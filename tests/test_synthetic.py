@@ -132,7 +132,7 @@ def test_no_view_dependent_shading():
     params = syn.SyntheticParams(seed=3)
     packed = syn.build_room(params).packed()
     cams = syn.camera_trajectory(params)
-    geometry = (packed.shapes, packed.centers, packed.rotations, packed.sizes, packed.radii)
+    geometry = packed.geometry()
     shading = (packed.tex_int, packed.tex_float, packed.lights, packed.light_power, params.ambient, True)
     rng = np.random.default_rng(0)
     compared = 0

@@ -211,7 +211,8 @@ class PackedScene:
 
     Attributes:
         shapes: [P] int64.  centers: [P, 3].  rotations: [P, 3, 3] local-to-world.  sizes: [P, 3].
-        radii: [P] bounding-sphere radii.  leaf_ids: [P] int64 instance ids.
+        radii: [P] bounding-sphere radii.  clusters: [C, 6] (first, end, centre xyz, radius): contiguous
+        primitive ranges (one per object) with a bounding sphere.  leaf_ids: [P] int64 instance ids.
         tex_int: [P, 3] int64 (pattern, axis, seed).  tex_float: [P, 13] (see ``TEX_FLOATS``).
         lights: [L, 3] positions.  light_power: [L].
     """
@@ -221,11 +222,16 @@ class PackedScene:
     rotations: np.ndarray
     sizes: np.ndarray
     radii: np.ndarray
+    clusters: np.ndarray
     leaf_ids: np.ndarray
     tex_int: np.ndarray
     tex_float: np.ndarray
     lights: np.ndarray
     light_power: np.ndarray
+
+    def geometry(self) -> tuple:
+        """The geometry arguments of the kernels' ``_trace``: shapes, centers, rotations, sizes, radii, clusters."""
+        return self.shapes, self.centers, self.rotations, self.sizes, self.radii, self.clusters
 
 
 def bounding_radius(shape: int, size: np.ndarray) -> float:
@@ -237,8 +243,13 @@ def bounding_radius(shape: int, size: np.ndarray) -> float:
     return float(np.linalg.norm(size))
 
 
-def pack_scene(primitives: list[Primitive], leaf_ids: list[int], lights: np.ndarray, power: np.ndarray) -> PackedScene:
-    """Pack primitives (with their final instance ids ``leaf_ids`` [P]) and lights [L, 3] for the kernels."""
+def pack_scene(primitives: list[Primitive], leaf_ids: list[int], lights: np.ndarray, power: np.ndarray,
+               groups: list[int] | None = None) -> PackedScene:
+    """Pack primitives (with their final instance ids ``leaf_ids`` [P]) and lights [L, 3] for the kernels.
+
+    ``groups`` [P] (e.g. the object of each primitive) must be contiguous runs; each run becomes one
+    bounding-sphere cluster.  Default: every primitive is its own cluster.
+    """
     P = len(primitives)
     tex_int = np.zeros((P, 3), dtype=np.int64)
     tex_float = np.zeros((P, TEX_FLOATS), dtype=np.float64)
@@ -246,12 +257,27 @@ def pack_scene(primitives: list[Primitive], leaf_ids: list[int], lights: np.ndar
         tx = prim.texture
         tex_int[i] = (tx.pattern, tx.axis, tx.seed)
         tex_float[i] = (*tx.color0, *tx.color1, tx.scale, tx.contrast, tx.noise_amp, tx.noise_scale, *tx.offset)
+    centers = np.array([p.center for p in primitives], dtype=np.float64).reshape(P, 3)
+    radii = np.array([bounding_radius(p.shape, p.size) * 1.0001 + 1e-6 for p in primitives], dtype=np.float64)
+    groups = list(range(P)) if groups is None else list(groups)
+    starts = [i for i in range(P) if i == 0 or groups[i] != groups[i - 1]]
+    if len(set(groups)) != len(starts):
+        raise ValueError("pack_scene: primitives of one group must be contiguous")
+    clusters = np.zeros((len(starts), 6))
+    for k, start in enumerate(starts):
+        end = starts[k + 1] if k + 1 < len(starts) else P
+        lo = (centers[start:end] - radii[start:end, None]).min(0)
+        hi = (centers[start:end] + radii[start:end, None]).max(0)
+        mid = (lo + hi) / 2
+        radius = (np.linalg.norm(centers[start:end] - mid, axis=1) + radii[start:end]).max()
+        clusters[k] = (start, end, *mid, radius * 1.0001 + 1e-6)
     return PackedScene(
         shapes=np.array([p.shape for p in primitives], dtype=np.int64),
-        centers=np.array([p.center for p in primitives], dtype=np.float64).reshape(P, 3),
+        centers=centers,
         rotations=np.array([p.rotation for p in primitives], dtype=np.float64).reshape(P, 3, 3),
         sizes=np.array([p.size for p in primitives], dtype=np.float64).reshape(P, 3),
-        radii=np.array([bounding_radius(p.shape, p.size) * 1.0001 + 1e-6 for p in primitives], dtype=np.float64),
+        radii=radii,
+        clusters=clusters,
         leaf_ids=np.asarray(leaf_ids, dtype=np.int64),
         tex_int=tex_int,
         tex_float=tex_float,
@@ -469,43 +495,61 @@ def _normal_local(shape, sx, sy, sz, x, y, z, face):
 
 
 @njit(cache=True)
-def _trace(ox, oy, oz, dx, dy, dz, tmin, tmax, shapes, centers, rotations, sizes, radii, any_hit):
-    """Nearest primitive hit by o + t d with tmin < t < tmax: (t, primitive index or -1, face)."""
+def _trace(ox, oy, oz, dx, dy, dz, tmin, tmax, shapes, centers, rotations, sizes, radii, clusters, any_hit):
+    """Nearest primitive hit by o + t d with tmin < t < tmax: (t, primitive index or -1, face).
+
+    ``clusters`` [C, 6] rows (first primitive, end primitive, centre xyz, radius) group the primitives
+    of one object under a bounding sphere; with ``any_hit`` the first hit found is returned.
+    """
     best_t = tmax
     best = -1
     best_face = 0
     dd = dx * dx + dy * dy + dz * dz
-    for p in range(shapes.shape[0]):
-        cx = ox - centers[p, 0]
-        cy = oy - centers[p, 1]
-        cz = oz - centers[p, 2]
+    for k in range(clusters.shape[0]):
+        # cluster (one object) bounding sphere first, then its primitives
+        cx = ox - clusters[k, 2]
+        cy = oy - clusters[k, 3]
+        cz = oz - clusters[k, 4]
         b = cx * dx + cy * dy + cz * dz
-        c = cx * cx + cy * cy + cz * cz - radii[p] * radii[p]
+        c = cx * cx + cy * cy + cz * cz - clusters[k, 5] * clusters[k, 5]
         disc = b * b - dd * c
         if disc < 0.0:
             continue
         sq = math.sqrt(disc)
         if (-b + sq) / dd <= tmin or (-b - sq) / dd >= best_t:
             continue
-        R = rotations[p]
-        lox = R[0, 0] * cx + R[1, 0] * cy + R[2, 0] * cz
-        loy = R[0, 1] * cx + R[1, 1] * cy + R[2, 1] * cz
-        loz = R[0, 2] * cx + R[1, 2] * cy + R[2, 2] * cz
-        ldx = R[0, 0] * dx + R[1, 0] * dy + R[2, 0] * dz
-        ldy = R[0, 1] * dx + R[1, 1] * dy + R[2, 1] * dz
-        ldz = R[0, 2] * dx + R[1, 2] * dy + R[2, 2] * dz
-        t, face = _intersect_local(shapes[p], sizes[p, 0], sizes[p, 1], sizes[p, 2], lox, loy, loz, ldx, ldy, ldz, tmin)
-        if t < best_t:
-            best_t = t
-            best = p
-            best_face = face
-            if any_hit:
-                break
+        for p in range(np.int64(clusters[k, 0]), np.int64(clusters[k, 1])):
+            cx = ox - centers[p, 0]
+            cy = oy - centers[p, 1]
+            cz = oz - centers[p, 2]
+            b = cx * dx + cy * dy + cz * dz
+            c = cx * cx + cy * cy + cz * cz - radii[p] * radii[p]
+            disc = b * b - dd * c
+            if disc < 0.0:
+                continue
+            sq = math.sqrt(disc)
+            if (-b + sq) / dd <= tmin or (-b - sq) / dd >= best_t:
+                continue
+            R = rotations[p]
+            lox = R[0, 0] * cx + R[1, 0] * cy + R[2, 0] * cz
+            loy = R[0, 1] * cx + R[1, 1] * cy + R[2, 1] * cz
+            loz = R[0, 2] * cx + R[1, 2] * cy + R[2, 2] * cz
+            ldx = R[0, 0] * dx + R[1, 0] * dy + R[2, 0] * dz
+            ldy = R[0, 1] * dx + R[1, 1] * dy + R[2, 1] * dz
+            ldz = R[0, 2] * dx + R[1, 2] * dy + R[2, 2] * dz
+            t, face = _intersect_local(shapes[p], sizes[p, 0], sizes[p, 1], sizes[p, 2], lox, loy, loz, ldx, ldy, ldz,
+                                       tmin)
+            if t < best_t:
+                best_t = t
+                best = p
+                best_face = face
+                if any_hit:
+                    return best_t, best, best_face
     return best_t, best, best_face
 
 
 @njit(cache=True)
-def _shade(ox, oy, oz, dx, dy, dz, t, p, face, shapes, centers, rotations, sizes, radii, tex_int, tex_float,
+def _shade(ox, oy, oz, dx, dy, dz, t, p, face, shapes, centers, rotations, sizes, radii, clusters, tex_int, tex_float,
            lights, light_power, ambient, shadows):
     """Lambertian radiance (RGB) of the hit (t, p, face) of ray o + t d."""
     hx, hy, hz = ox + t * dx, oy + t * dy, oz + t * dz
@@ -531,7 +575,7 @@ def _shade(ox, oy, oz, dx, dy, dz, t, p, face, shapes, centers, rotations, sizes
             continue
         if shadows:
             st, sp, sf = _trace(hx + 1e-4 * nx, hy + 1e-4 * ny, hz + 1e-4 * nz, vx, vy, vz, 1e-6, dist,
-                                shapes, centers, rotations, sizes, radii, True)
+                                shapes, centers, rotations, sizes, radii, clusters, True)
             if sp >= 0:
                 continue
         light += light_power[li] * cos / (1.0 + (dist / LIGHT_FALLOFF) ** 2)
@@ -539,7 +583,7 @@ def _shade(ox, oy, oz, dx, dy, dz, t, p, face, shapes, centers, rotations, sizes
 
 
 @njit(parallel=True, cache=True)
-def _render_kernel(width, height, fx, fy, cx, cy, cam_rot, cam_pos, ss, shapes, centers, rotations, sizes, radii,
+def _render_kernel(width, height, fx, fy, cx, cy, cam_rot, cam_pos, ss, shapes, centers, rotations, sizes, radii, clusters,
                    tex_int, tex_float, lights, light_power, ambient, shadows):
     """Render one view.  cam_rot: [3, 3] camera-to-world rotation; cam_pos: [3].
 
@@ -558,7 +602,7 @@ def _render_kernel(width, height, fx, fy, cx, cy, cam_rot, cam_pos, ss, shapes, 
             dx = cam_rot[0, 0] * ux + cam_rot[0, 1] * uy + cam_rot[0, 2]
             dy = cam_rot[1, 0] * ux + cam_rot[1, 1] * uy + cam_rot[1, 2]
             dz = cam_rot[2, 0] * ux + cam_rot[2, 1] * uy + cam_rot[2, 2]
-            t, p, face = _trace(ox, oy, oz, dx, dy, dz, 1e-6, np.inf, shapes, centers, rotations, sizes, radii, False)
+            t, p, face = _trace(ox, oy, oz, dx, dy, dz, 1e-6, np.inf, shapes, centers, rotations, sizes, radii, clusters, False)
             if p >= 0:
                 prim[y, x] = p
                 depth[y, x] = t
@@ -573,10 +617,10 @@ def _render_kernel(width, height, fx, fy, cx, cy, cam_rot, cam_pos, ss, shapes, 
                     dy = cam_rot[1, 0] * ux + cam_rot[1, 1] * uy + cam_rot[1, 2]
                     dz = cam_rot[2, 0] * ux + cam_rot[2, 1] * uy + cam_rot[2, 2]
                     t, p, face = _trace(ox, oy, oz, dx, dy, dz, 1e-6, np.inf, shapes, centers, rotations, sizes,
-                                        radii, False)
+                                        radii, clusters, False)
                     if p >= 0:
                         r_, g_, b_ = _shade(ox, oy, oz, dx, dy, dz, t, p, face, shapes, centers, rotations, sizes,
-                                            radii, tex_int, tex_float, lights, light_power, ambient, shadows)
+                                            radii, clusters, tex_int, tex_float, lights, light_power, ambient, shadows)
                         acc_r += r_
                         acc_g += g_
                         acc_b += b_
@@ -602,7 +646,7 @@ def render_view(
     return _render_kernel(
         camera.width, camera.height, K[0, 0], K[1, 1], K[0, 2], K[1, 2],
         np.ascontiguousarray(c2w[:3, :3]), np.ascontiguousarray(c2w[:3, 3]), int(supersample),
-        packed.shapes, packed.centers, packed.rotations, packed.sizes, packed.radii,
+        packed.shapes, packed.centers, packed.rotations, packed.sizes, packed.radii, packed.clusters,
         packed.tex_int, packed.tex_float, packed.lights, packed.light_power, float(ambient), bool(shadows),
     )
 
@@ -920,8 +964,12 @@ class RoomLayout:
     key_to_id: dict
 
     def packed(self) -> PackedScene:
+        """Kernel arrays; the primitives of one object share a bounding-sphere cluster."""
+        parent = {n.key: n.parent for n in self.nodes}
+        level = {n.key: n.level for n in self.nodes}
+        objects = [p.leaf if level[p.leaf] != "part" else parent[p.leaf] for p in self.primitives]
         return pack_scene(self.primitives, [self.key_to_id[p.leaf] for p in self.primitives], self.lights,
-                          self.light_power)
+                          self.light_power, objects)
 
 
 def _rgb(h: float, s: float, v: float) -> tuple[float, float, float]:
