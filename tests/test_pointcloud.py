@@ -8,7 +8,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from trace3d.errors import Trace3DError
-from trace3d.pointcloud import Sim3, read_points_ply, rotation_angle_deg, umeyama, write_points_ply
+from trace3d.pointcloud import Sim3, align_cameras, read_points_ply, rotation_angle_deg, umeyama, write_points_ply
 
 
 def random_sim3(rng: np.random.Generator) -> Sim3:
@@ -198,3 +198,51 @@ class TestSim3:
         a = Rotation.from_rotvec([0.0, 0.0, np.radians(30.0)]).as_matrix()
         assert rotation_angle_deg(a, np.eye(3)) == pytest.approx(30.0)
         assert rotation_angle_deg(a, a) == pytest.approx(0.0, abs=1e-6)
+
+
+def random_cameras(rng: np.random.Generator, count: int, radius: float = 2.0) -> np.ndarray:
+    """[L, 4, 4] world_to_camera poses with random orientations and centres on a noisy circle."""
+    poses = np.tile(np.eye(4), (count, 1, 1))
+    for i in range(count):
+        rot = Rotation.random(random_state=int(rng.integers(1 << 31))).as_matrix()
+        angle = 2 * np.pi * i / count
+        centre = radius * np.array([np.cos(angle), np.sin(angle), 0.1 * rng.normal()])
+        poses[i, :3, :3] = rot
+        poses[i, :3, 3] = -rot @ centre
+    return poses
+
+
+class TestAlignCameras:
+    @pytest.mark.parametrize("method", ["poses", "centers"])
+    def test_recovers_known_similarity(self, method):
+        rng = np.random.default_rng(21)
+        truth = random_sim3(rng)
+        source = random_cameras(rng, 8)
+        target = np.stack([truth.transform_world_to_camera(w) for w in source])
+        fit = align_cameras(source, target, method)
+        assert fit.scale == pytest.approx(truth.scale, rel=1e-9)
+        np.testing.assert_allclose(fit.rotation, truth.rotation, atol=1e-9)
+        np.testing.assert_allclose(fit.translation, truth.translation, atol=1e-8 * max(1.0, truth.scale))
+
+    def test_orientations_fix_the_rotation_of_a_short_noisy_loop(self):
+        rng = np.random.default_rng(5)
+        truth = random_sim3(rng)
+        source = random_cameras(rng, 36, radius=0.5)
+        target = np.stack([truth.transform_world_to_camera(w) for w in source])
+        # perturb the source centres by 1 cm, keep the orientations exact
+        noisy = source.copy()
+        for pose in noisy:
+            centre = -pose[:3, :3].T @ pose[:3, 3] + rng.normal(scale=0.01, size=3)
+            pose[:3, 3] = -pose[:3, :3] @ centre
+        by_poses = align_cameras(noisy, target, "poses")
+        by_centres = align_cameras(noisy, target, "centers")
+        assert rotation_angle_deg(by_poses.rotation, truth.rotation) < 1e-5  # arccos resolution
+        assert rotation_angle_deg(by_centres.rotation, truth.rotation) > 0.1
+        assert by_poses.scale == pytest.approx(truth.scale, rel=0.02)
+
+    def test_degenerate_cameras(self):
+        poses = np.tile(np.eye(4), (4, 1, 1))
+        with pytest.raises(Trace3DError, match="coincide"):
+            align_cameras(poses, poses, "poses")
+        with pytest.raises(ValueError, match="unknown alignment method"):
+            align_cameras(random_cameras(np.random.default_rng(0), 4), random_cameras(np.random.default_rng(1), 4), "icp")

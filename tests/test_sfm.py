@@ -253,8 +253,10 @@ def test_registers_every_view_within_two_percent(room, room_sfm):
     assert report["missing"] == [] and report["filled_from_scene"] == []
     alignment = report["alignment"]
     assert alignment["applied"]
+    assert alignment["method"] == "poses"
     assert alignment["center_error_rel_max"] < 0.02
-    assert alignment["rotation_error_deg_max"] < 2.0
+    assert alignment["rotation_error_deg_max"] < 1.0
+    assert alignment["centers_only"]["center_error_rel_max"] < 0.02  # plain Umeyama on the centres
     assert report["mean_reprojection_error_px"] < 1.0
     assert report["mean_track_length"] > 2.0
     assert report["num_points"] >= 300

@@ -259,6 +259,60 @@ def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool = True) -> 
     return Sim3(scale, rotation, translation)
 
 
+def _project_to_rotation(matrix: np.ndarray) -> np.ndarray:
+    """Nearest proper rotation [3, 3] to ``matrix`` [3, 3] in the Frobenius norm."""
+    u, _, vt = np.linalg.svd(matrix)
+    sign = np.eye(3)
+    sign[2, 2] = np.sign(np.linalg.det(u @ vt)) or 1.0
+    return u @ sign @ vt
+
+
+def align_cameras(
+    source_world_to_camera: np.ndarray,
+    target_world_to_camera: np.ndarray,
+    method: str = "poses",
+) -> Sim3:
+    """The similarity that maps the world of the source cameras onto the world of the target cameras.
+
+    Args:
+        source_world_to_camera: [L, 4, 4] poses of L cameras (e.g. from SfM).
+        target_world_to_camera: [L, 4, 4] poses of the same cameras in the reference frame.
+        method: ``"centers"``: Umeyama on the camera centres alone.  ``"poses"``: the rotation is
+            the chordal mean of the per-camera rotations that bring each source orientation onto
+            its target orientation (:meth:`Sim3.transform_world_to_camera` maps ``R_s`` to
+            ``R_s @ R.T``), then scale and translation are the least-squares fit of the centres
+            under that rotation.  Centres alone fix the rotation poorly when they span a small
+            or nearly planar region (a short camera loop): the error is about centre noise /
+            loop radius; the orientations fix it directly.
+    Raises:
+        Trace3DError: too few cameras or degenerate centres.
+    """
+    src = np.asarray(source_world_to_camera, dtype=np.float64)
+    tgt = np.asarray(target_world_to_camera, dtype=np.float64)
+    if src.shape != tgt.shape or src.ndim != 3 or src.shape[1:] != (4, 4):
+        raise ValueError(f"camera poses must both be [L, 4, 4], got {src.shape} and {tgt.shape}")
+    src_rot, tgt_rot = src[:, :3, :3], tgt[:, :3, :3]
+    src_centres = -np.einsum("lji,lj->li", src_rot, src[:, :3, 3])
+    tgt_centres = -np.einsum("lji,lj->li", tgt_rot, tgt[:, :3, 3])
+    if method == "centers":
+        return umeyama(src_centres, tgt_centres)
+    if method != "poses":
+        raise ValueError(f"unknown alignment method {method!r}")
+    if len(src) < 2:
+        raise Trace3DError(f"camera alignment needs at least 2 cameras, got {len(src)}.")
+    rotation = _project_to_rotation(np.einsum("lji,ljk->ik", tgt_rot, src_rot))
+    src_c = src_centres - src_centres.mean(axis=0)
+    tgt_c = tgt_centres - tgt_centres.mean(axis=0)
+    var = (src_c**2).sum()
+    if var <= 1e-18:
+        raise Trace3DError("camera alignment is degenerate: all source camera centres coincide.")
+    scale = float((tgt_c * (src_c @ rotation.T)).sum() / var)
+    if scale <= 0:
+        raise Trace3DError("camera alignment is degenerate: the centres fit only with a negative scale.")
+    translation = tgt_centres.mean(axis=0) - scale * rotation @ src_centres.mean(axis=0)
+    return Sim3(scale, rotation, translation)
+
+
 def rotation_angle_deg(rotation_a: np.ndarray, rotation_b: np.ndarray) -> float:
     """Angle in degrees of the relative rotation ``rotation_a @ rotation_b.T`` ([3, 3] each)."""
     rel = np.asarray(rotation_a) @ np.asarray(rotation_b).T

@@ -18,11 +18,15 @@ frame, train and test, must register (``min_registered_fraction = 1``); a failed
 reconstruction raises :class:`~trace3d.errors.Trace3DError` naming the frames that are missing.
 
 Output frame.  When the scene has reference poses (its ``cameras.json``; see
-:func:`scene_has_reference_poses`), the reconstruction is mapped by the Sim(3) (Umeyama) that best
-aligns its camera centres with the reference centres, so that every output (COLMAP model,
-cameras.json, points) lives in the scene's frame and later steps can evaluate against the scene's
-depths and instances.  The residual camera-centre error after that alignment is reported relative
-to the diameter of the reference camera centres (largest pairwise distance).  Without reference
+:func:`scene_has_reference_poses`), the reconstruction is mapped by the Sim(3) that best aligns its
+cameras with the reference cameras, so that every output (COLMAP model, cameras.json, points)
+lives in the scene's frame and scale, and later steps can use the scene's depths and instances.
+The default ``align_method: poses`` takes the rotation from the camera orientations and scale and
+translation from the centres (least squares); ``centers`` is Umeyama on the centres alone, which
+fixes the rotation poorly for a short camera loop (the default synthetic rooms and Replica capture
+from a loop of ~1 m diameter).  The residual camera-centre error is reported relative to the
+diameter of the reference camera centres (largest pairwise distance), with the rotation error in
+degrees, for the alignment used and for the centres-only (Umeyama) alignment.  Without reference
 poses COLMAP's own frame is kept.
 
 Missing frames when ``min_registered_fraction < 1`` allows them: in the reference frame they are
@@ -51,7 +55,7 @@ from tqdm import tqdm
 from .errors import ConfigError, Trace3DError
 from .io import write_json
 from .params import from_mapping, to_dict
-from .pointcloud import Sim3, rotation_angle_deg, umeyama, write_points_ply
+from .pointcloud import align_cameras, rotation_angle_deg, write_points_ply
 from .scene import Camera, Scene, write_cameras
 
 log = logging.getLogger(__name__)
@@ -74,12 +78,19 @@ class PosesParams:
             known intrinsics; estimated intrinsics always refine the focal lengths).
         max_num_features: SIFT features per image.
         max_image_size: images larger than this are downscaled for extraction.
+        sift_peak_threshold: SIFT detection threshold (lower finds more features in low-contrast
+            or small images).
+        domain_size_pooling: DSP-SIFT descriptors (more robust matching, slower extraction).
+        guided_matching: re-match guided by the verified two-view geometry (more inliers, slower).
         init_min_num_inliers: verified matches needed by the initial image pair.
         min_num_matches: verified matches for a pair to enter the view graph.
         min_registered_fraction: fraction of the scene's frames that must register (1 = all).
         min_num_points: fewer triangulated points than this is a degenerate reconstruction.
         align_to_scene: map the reconstruction into the frame of the scene's poses; None = whenever
             the scene has reference poses.
+        align_method: "poses" (rotation from the camera orientations, scale and translation from
+            the centres) or "centers" (Umeyama on the centres alone); see
+            :func:`trace3d.pointcloud.align_cameras`.
         depth_points: (dataset mode) total number of depth pixels back-projected into points.
         num_threads: CPU threads for pycolmap (-1 = all cores).
         seed: seed of pycolmap's random number generator (RANSAC, mapping) and of point sampling.
@@ -95,11 +106,15 @@ class PosesParams:
     refine_intrinsics: bool = False
     max_num_features: int = 8192
     max_image_size: int = 3200
+    sift_peak_threshold: float = 0.02 / 3
+    domain_size_pooling: bool = False
+    guided_matching: bool = False
     init_min_num_inliers: int = 100
     min_num_matches: int = 15
     min_registered_fraction: float = 1.0
     min_num_points: int = 100
     align_to_scene: bool | None = None
+    align_method: Literal["poses", "centers"] = "poses"
     depth_points: int = 100_000
     num_threads: int = -1
     seed: int = 0
@@ -112,6 +127,8 @@ class PosesParams:
                      "min_num_matches"):  # fmt: skip
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.sift_peak_threshold <= 0:
+            raise ValueError(f"sift_peak_threshold must be > 0, got {self.sift_peak_threshold}")
         if self.min_num_points < 0 or self.depth_points < 0:
             raise ValueError("min_num_points and depth_points must be >= 0")
         if self.num_threads == 0 or self.num_threads < -1:
@@ -315,6 +332,8 @@ def _run_colmap(scene: Scene, out_dir: Path, p: PosesParams) -> dict:
         extraction.num_threads = p.num_threads
         extraction.max_image_size = p.max_image_size
         extraction.sift.max_num_features = p.max_num_features
+        extraction.sift.peak_threshold = p.sift_peak_threshold
+        extraction.sift.domain_size_pooling = p.domain_size_pooling
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = "PINHOLE"
         log.info("poses (colmap): extracting SIFT features ...")
@@ -330,6 +349,7 @@ def _run_colmap(scene: Scene, out_dir: Path, p: PosesParams) -> dict:
         t0 = time.perf_counter()
         matching = pycolmap.FeatureMatchingOptions()
         matching.num_threads = p.num_threads
+        matching.guided_matching = p.guided_matching
         verification = pycolmap.TwoViewGeometryOptions()
         verification.min_num_inliers = p.min_num_matches
         verification.ransac.random_seed = p.seed
@@ -406,7 +426,7 @@ def _run_colmap(scene: Scene, out_dir: Path, p: PosesParams) -> dict:
         raise ConfigError(f"{scene.root / 'cameras.json'}: align_to_scene is true but the scene has no usable poses.")
     filled: list[str] = []
     if align:
-        report["alignment"] = _align_to_scene(rec, scene, registered)
+        report["alignment"] = _align_to_scene(rec, scene, registered, p.align_method)
         report["frame"] = "scene (SfM mapped by the Sim(3) in 'alignment')"
     else:
         report["frame"] = "colmap"
@@ -508,8 +528,12 @@ def _mapping_options(p: PosesParams, num_images: int):
     return opts
 
 
-def _align_to_scene(rec, scene: Scene, registered: dict) -> dict:
-    """Map ``rec`` (in place) by the Sim(3) aligning its camera centres to the scene's; return errors."""
+def _align_to_scene(rec, scene: Scene, registered: dict, method: str) -> dict:
+    """Map ``rec`` (in place) by the Sim(3) aligning its cameras to the scene's; return the errors.
+
+    ``method`` is :func:`trace3d.pointcloud.align_cameras`'s.  The errors after the alignment that
+    uses the camera centres alone (Umeyama) are reported too, under ``centers_only``.
+    """
     import pycolmap
 
     names = [c.name for c in scene.cameras if c.name in registered]
@@ -518,29 +542,43 @@ def _align_to_scene(rec, scene: Scene, registered: dict) -> dict:
             f"{scene.root}: only {len(names)} frames registered, too few to align the reconstruction "
             "to the scene's poses (need 3)."
         )
-    sfm_centres = np.stack([registered[n].projection_center() for n in names])
-    ref_centres = np.stack([scene.camera(n).center for n in names])
-    sim = umeyama(sfm_centres, ref_centres)
-    rec.transform(pycolmap.Sim3d(sim.scale, pycolmap.Rotation3d(sim.rotation), sim.translation))
-    aligned = np.stack([registered[n].projection_center() for n in names])
-    errors = np.linalg.norm(aligned - ref_centres, axis=1)
-    rot_errors = np.array(
-        [rotation_angle_deg(registered[n].cam_from_world().rotation.matrix(), scene.camera(n).rotation) for n in names]
-    )
+
+    def sfm_poses() -> np.ndarray:
+        out = np.tile(np.eye(4), (len(names), 1, 1))
+        out[:, :3, :4] = [registered[n].cam_from_world().matrix() for n in names]
+        return out
+
+    reference = np.stack([scene.camera(n).world_to_camera for n in names])
+    reference_centres = np.stack([scene.camera(n).center for n in names])
     diameter = camera_diameter(np.stack([c.center for c in scene.cameras]))
-    worst = int(np.argmax(errors))
+
+    def errors(poses: np.ndarray) -> dict:
+        centres = -np.einsum("lji,lj->li", poses[:, :3, :3], poses[:, :3, 3])
+        dist = np.linalg.norm(centres - reference_centres, axis=1)
+        angles = np.array([rotation_angle_deg(a[:3, :3], b[:3, :3]) for a, b in zip(poses, reference)])
+        return {
+            "center_error_mean": float(dist.mean()),
+            "center_error_max": float(dist.max()),
+            "center_error_rel_mean": float(dist.mean() / diameter),
+            "center_error_rel_max": float(dist.max() / diameter),
+            "center_error_worst_frame": names[int(np.argmax(dist))],
+            "rotation_error_deg_mean": float(angles.mean()),
+            "rotation_error_deg_max": float(angles.max()),
+        }
+
+    before = sfm_poses()
+    by_centres = align_cameras(before, reference, "centers")
+    centres_only = errors(np.stack([by_centres.transform_world_to_camera(w) for w in before]))
+    sim = align_cameras(before, reference, method)
+    rec.transform(pycolmap.Sim3d(sim.scale, pycolmap.Rotation3d(sim.rotation), sim.translation))
     return {
         "applied": True,
+        "method": method,
         "sim3_scene_from_colmap": sim.to_json(),
         "extent": "diameter of the scene's camera centres (largest pairwise distance)",
         "extent_value": diameter,
-        "center_error_mean": float(errors.mean()),
-        "center_error_max": float(errors.max()),
-        "center_error_rel_mean": float(errors.mean() / diameter),
-        "center_error_rel_max": float(errors.max() / diameter),
-        "center_error_worst_frame": names[worst],
-        "rotation_error_deg_mean": float(rot_errors.mean()),
-        "rotation_error_deg_max": float(rot_errors.max()),
+        **errors(sfm_poses()),
+        "centers_only": centres_only,
     }
 
 
