@@ -1073,14 +1073,14 @@ class _RoomBuilder:
             c0 = _rgb(h, r.uniform(0.35, 0.65), r.uniform(0.5, 0.8))
             c1 = _rgb(h, r.uniform(0.5, 0.8), r.uniform(0.2, 0.4))
             scale = {PAT_PLANKS: 0.1, PAT_RINGS: 0.06, PAT_STRIPES: 0.07}[pattern] * r.uniform(0.8, 1.3)
-            return Texture(pattern, c0, c1, scale * ts, 0.9 * tc, 0.25, 0.06 * ts, int(r.integers(0, 3)), seed, offset)
+            return Texture(pattern, c0, c1, scale * ts, 0.9 * tc, 0.25, 0.08 * ts, int(r.integers(0, 3)), seed, offset)
         if kind == "fabric":
             pattern = int(r.choice([PAT_NOISE, PAT_CHECKER, PAT_STRIPES]))
             h = r.uniform(0, 1)
             c0 = _rgb(h, r.uniform(0.3, 0.7), r.uniform(0.45, 0.8))
             c1 = _rgb(h + r.uniform(-0.2, 0.2), r.uniform(0.3, 0.8), r.uniform(0.2, 0.45))
             scale = {PAT_NOISE: 0.12, PAT_CHECKER: 0.09, PAT_STRIPES: 0.08}[pattern] * r.uniform(0.8, 1.4)
-            return Texture(pattern, c0, c1, scale * ts, 0.8 * tc, 0.25, 0.05 * ts, int(r.integers(0, 3)), seed, offset)
+            return Texture(pattern, c0, c1, scale * ts, 0.8 * tc, 0.25, 0.07 * ts, int(r.integers(0, 3)), seed, offset)
         if kind == "paint":  # lacquered furniture, doors
             h = r.uniform(0, 1)
             c0 = _rgb(h, r.uniform(0.2, 0.6), r.uniform(0.6, 0.9))
@@ -1090,24 +1090,24 @@ class _RoomBuilder:
         if kind == "metal":
             c0 = _rgb(0.6, 0.05, r.uniform(0.6, 0.8))
             c1 = _rgb(0.6, 0.1, r.uniform(0.25, 0.4))
-            return Texture(PAT_NOISE, c0, c1, 0.05 * ts, 0.8 * tc, 0.15, 0.03 * ts, 2, seed, offset)
+            return Texture(PAT_NOISE, c0, c1, 0.08 * ts, 0.8 * tc, 0.15, 0.06 * ts, 2, seed, offset)
         if kind == "ceramic":
             pattern = int(r.choice([PAT_STRIPES, PAT_CHECKER, PAT_NOISE]))
             h = r.uniform(0, 1)
             c0 = _rgb(h, r.uniform(0.4, 0.9), r.uniform(0.6, 0.95))
             c1 = _rgb(h + r.uniform(0.2, 0.5), r.uniform(0.5, 0.9), r.uniform(0.3, 0.7))
             scale = {PAT_STRIPES: 0.05, PAT_CHECKER: 0.04, PAT_NOISE: 0.05}[pattern]
-            return Texture(pattern, c0, c1, scale * ts, tc, 0.15, 0.04 * ts, 2, seed, offset)
+            return Texture(pattern, c0, c1, scale * ts, tc, 0.15, 0.06 * ts, 2, seed, offset)
         if kind == "plant":
             h = r.uniform(0.22, 0.38)
             c0 = _rgb(h, r.uniform(0.5, 0.8), r.uniform(0.55, 0.8))
             c1 = _rgb(h + 0.05, r.uniform(0.6, 0.9), r.uniform(0.15, 0.3))
-            return Texture(PAT_NOISE, c0, c1, 0.06 * ts, 1.2 * tc, 0.3, 0.04 * ts, 0, seed, offset)
+            return Texture(PAT_NOISE, c0, c1, 0.08 * ts, 1.2 * tc, 0.3, 0.07 * ts, 0, seed, offset)
         if kind == "paper":  # book covers
             h = r.uniform(0, 1)
             c0 = _rgb(h, r.uniform(0.4, 0.9), r.uniform(0.4, 0.9))
             c1 = _rgb(h + r.uniform(0.3, 0.6), r.uniform(0.2, 0.8), r.uniform(0.2, 0.9))
-            return Texture(PAT_STRIPES, c0, c1, r.uniform(0.05, 0.09) * ts, 0.8 * tc, 0.15, 0.03 * ts, 2, seed, offset)
+            return Texture(PAT_STRIPES, c0, c1, r.uniform(0.05, 0.09) * ts, 0.8 * tc, 0.15, 0.06 * ts, 2, seed, offset)
         if kind == "art":
             pattern = int(r.choice([PAT_NOISE, PAT_RINGS, PAT_CHECKER, PAT_STRIPES]))
             c0 = _rgb(r.uniform(0, 1), r.uniform(0.5, 1.0), r.uniform(0.6, 1.0))
@@ -1536,7 +1536,7 @@ class _RoomBuilder:
 
     def add_floor_item(self) -> bool:
         r = self.rng
-        kind = str(r.choice(["ball", "basket", "ottoman", "plant"]))
+        kind = str(r.choice(["ball", "basket", "basket", "ottoman", "plant", "plant"]))
         if kind == "ball":
             rad = r.uniform(0.1, 0.16)
             spec = ObjectSpec("ball", "ball", [LocalPart(None, SHAPE_ELLIPSOID, (0, 0, rad), (rad, rad, rad), self.texture(str(r.choice(["ceramic", "fabric"]))))], rad, rad, 2 * rad)
@@ -1676,6 +1676,8 @@ def build_room(params: SyntheticParams) -> RoomLayout:
     b.build_structure()
     furniture = ["table_set", "shelf", "sofa", "cabinet", "floor_lamp", "plant", "door", "window", "painting",
                  "painting", "side_table", "clock", "rug"]
+    optional = ("floor_lamp", "plant", "painting", "side_table", "clock")  # each left out with probability 1/4
+    furniture = [k for k in furniture if k not in optional or rng.uniform() >= 0.25]
     order = [furniture[i] for i in rng.permutation(len(furniture))]
     # the big pieces first so that they find wall space
     order.sort(key=lambda k: {"door": 0, "shelf": 1, "sofa": 1, "cabinet": 1, "table_set": 1, "window": 2, "rug": 4}.get(k, 3))
