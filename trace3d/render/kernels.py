@@ -165,6 +165,7 @@ def forward_kernel(geom, vals, boxes, offsets, lists, width, height, tiles_x, ne
             my = geom[g, 13]
             opac = geom[g, 14]
             level = geom[g, 15]
+            level2 = np.float32(2.0) * level
             for py in range(y0, y1):
                 y = np.float32(py) + np.float32(0.5)
                 e0 = a0 + d0 * y
@@ -178,14 +179,20 @@ def forward_kernel(geom, vals, boxes, offsets, lists, width, height, tiles_x, ne
                     if done[p]:
                         continue
                     x = np.float32(px) + np.float32(0.5)
+                    c0 = e0 + b0 * x
+                    c1 = e1 + b1 * x
                     c2 = e2 + b2 * x
-                    if c2 == 0:
-                        continue
-                    u = (e0 + b0 * x) / c2
-                    v = (e1 + b1 * x) / c2
-                    s_disk = np.float32(0.5) * (u * u + v * v)
                     dx = x - mx
                     s_filt = dx * dx + dy2
+                    # division-free rejection: both sigma terms above the level (which carries slack)
+                    if s_filt > level and c0 * c0 + c1 * c1 > level2 * (c2 * c2):
+                        continue
+                    if c2 == 0:
+                        continue
+                    inv_c2 = np.float32(1.0) / c2
+                    u = c0 * inv_c2
+                    v = c1 * inv_c2
+                    s_disk = np.float32(0.5) * (u * u + v * v)
                     use_disk = s_disk <= s_filt
                     sigma = s_disk if use_disk else s_filt
                     if sigma > level:
@@ -308,6 +315,7 @@ def backward_kernel(geom, vals, boxes, offsets, lists, width, height, tiles_x, n
                 my = geom[g, 13]
                 opac = geom[g, 14]
                 level = geom[g, 15]
+                level2 = np.float32(2.0) * level
                 # per-splat gradient sums over this tile
                 ga0 = np.float32(0.0)
                 ga1 = np.float32(0.0)
@@ -343,14 +351,20 @@ def backward_kernel(geom, vals, boxes, offsets, lists, width, height, tiles_x, n
                         if j >= t_last[p]:
                             continue
                         x = np.float32(px) + np.float32(0.5)
+                        c0 = e0 + b0 * x
+                        c1 = e1 + b1 * x
                         c2 = e2 + b2 * x
-                        if c2 == 0:
-                            continue
-                        u = (e0 + b0 * x) / c2
-                        v = (e1 + b1 * x) / c2
-                        s_disk = np.float32(0.5) * (u * u + v * v)
                         dx = x - mx
                         s_filt = dx * dx + dy2
+                        # division-free rejection: both sigma terms above the level (which carries slack)
+                        if s_filt > level and c0 * c0 + c1 * c1 > level2 * (c2 * c2):
+                            continue
+                        if c2 == 0:
+                            continue
+                        inv_c2 = np.float32(1.0) / c2
+                        u = c0 * inv_c2
+                        v = c1 * inv_c2
+                        s_disk = np.float32(0.5) * (u * u + v * v)
                         use_disk = s_disk <= s_filt
                         sigma = s_disk if use_disk else s_filt
                         if sigma > level:
@@ -397,9 +411,9 @@ def backward_kernel(geom, vals, boxes, offsets, lists, width, height, tiles_x, n
                             g_v = np.float32(0.0)
                             gmx -= np.float32(2.0) * dx * g_sigma
                             gmy -= np.float32(2.0) * dy * g_sigma
-                        g_c0 = g_u / c2
-                        g_c1 = g_v / c2
-                        g_c2 = -(g_u * u + g_v * v) / c2
+                        g_c0 = g_u * inv_c2
+                        g_c1 = g_v * inv_c2
+                        g_c2 = -(g_u * u + g_v * v) * inv_c2
                         rc0 += g_c0
                         rc1 += g_c1
                         rc2 += g_c2
@@ -540,6 +554,7 @@ def trace_kernel(geom, boxes, offsets, lists, width, height, tiles_x, near, labe
             my = geom[g, 13]
             opac = geom[g, 14]
             level = geom[g, 15]
+            level2 = np.float32(2.0) * level
             for py in range(y0, y1):
                 y = np.float32(py) + np.float32(0.5)
                 e0 = a0 + d0 * y
@@ -553,14 +568,20 @@ def trace_kernel(geom, boxes, offsets, lists, width, height, tiles_x, near, labe
                     if done[p]:
                         continue
                     x = np.float32(px) + np.float32(0.5)
+                    c0 = e0 + b0 * x
+                    c1 = e1 + b1 * x
                     c2 = e2 + b2 * x
-                    if c2 == 0:
-                        continue
-                    u = (e0 + b0 * x) / c2
-                    v = (e1 + b1 * x) / c2
-                    s_disk = np.float32(0.5) * (u * u + v * v)
                     dx = x - mx
                     s_filt = dx * dx + dy2
+                    # division-free rejection: both sigma terms above the level (which carries slack)
+                    if s_filt > level and c0 * c0 + c1 * c1 > level2 * (c2 * c2):
+                        continue
+                    if c2 == 0:
+                        continue
+                    inv_c2 = np.float32(1.0) / c2
+                    u = c0 * inv_c2
+                    v = c1 * inv_c2
+                    s_disk = np.float32(0.5) * (u * u + v * v)
                     use_disk = s_disk <= s_filt
                     sigma = s_disk if use_disk else s_filt
                     if sigma > level:
@@ -733,4 +754,4 @@ def trace_weights(proj: Projected, width: int, height: int, labels: Tensor, num_
     n = proj.depths.shape[0]
     dev = proj.depths.device
     idx = torch.from_numpy(np.stack([rows, cols])) if rows.size else torch.zeros(2, 0, dtype=torch.int64)
-    return torch.sparse_coo_tensor(idx, torch.from_numpy(w), (n, num_labels)).coalesce().to(dev)
+    return torch.sparse_coo_tensor(idx, torch.from_numpy(w), (n, num_labels), check_invariants=False).coalesce().to(dev)

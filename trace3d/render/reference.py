@@ -37,8 +37,9 @@ def _blend_chunk(coeffs: Tensor, tw: Tensor, means2d: Tensor, opacities: Tensor,
     c2 = (coeffs[:, 2:3] + coeffs[:, 8:9] * y) + coeffs[:, 5:6] * x
     nonparallel = c2 != 0
     c2 = torch.where(nonparallel, c2, torch.ones_like(c2))
-    u = c0 / c2
-    v = c1 / c2
+    inv_c2 = 1.0 / c2
+    u = c0 * inv_c2
+    v = c1 * inv_c2
     sigma_disk = 0.5 * (u * u + v * v)
     dx = x - means2d[:, 0:1]
     dy = y - means2d[:, 1:2]
