@@ -583,7 +583,8 @@ def _shade(ox, oy, oz, dx, dy, dz, t, p, face, shapes, centers, rotations, sizes
 
 
 @njit(parallel=True, cache=True)
-def _render_kernel(width, height, fx, fy, cx, cy, cam_rot, cam_pos, ss, shapes, centers, rotations, sizes, radii, clusters,
+def _render_kernel(width, height, fx, fy, cx, cy, cam_rot, cam_pos, ss, shapes, centers, rotations, sizes, radii,
+                   clusters,
                    tex_int, tex_float, lights, light_power, ambient, shadows):
     """Render one view.  cam_rot: [3, 3] camera-to-world rotation; cam_pos: [3].
 
@@ -602,7 +603,8 @@ def _render_kernel(width, height, fx, fy, cx, cy, cam_rot, cam_pos, ss, shapes, 
             dx = cam_rot[0, 0] * ux + cam_rot[0, 1] * uy + cam_rot[0, 2]
             dy = cam_rot[1, 0] * ux + cam_rot[1, 1] * uy + cam_rot[1, 2]
             dz = cam_rot[2, 0] * ux + cam_rot[2, 1] * uy + cam_rot[2, 2]
-            t, p, face = _trace(ox, oy, oz, dx, dy, dz, 1e-6, np.inf, shapes, centers, rotations, sizes, radii, clusters, False)
+            t, p, face = _trace(ox, oy, oz, dx, dy, dz, 1e-6, np.inf, shapes, centers, rotations, sizes, radii,
+                                clusters, False)
             if p >= 0:
                 prim[y, x] = p
                 depth[y, x] = t
@@ -917,6 +919,31 @@ class LocalPart:
     rotation: np.ndarray | None = None
 
 
+def _box(name, center, half, texture, rotation=None) -> LocalPart:
+    """A box part: ``half`` = half extents."""
+    return LocalPart(name, SHAPE_BOX, center, half, texture, rotation)
+
+
+def _ellipsoid(name, center, axes, texture, rotation=None) -> LocalPart:
+    """An ellipsoid part: ``axes`` = semi-axes."""
+    return LocalPart(name, SHAPE_ELLIPSOID, center, axes, texture, rotation)
+
+
+def _frustum(name, center, size, texture, rotation=None) -> LocalPart:
+    """A capped frustum around the local z axis: ``size`` = (bottom radius, top radius, half height)."""
+    return LocalPart(name, SHAPE_FRUSTUM, center, size, texture, rotation)
+
+
+def _single(category: str, part: LocalPart, half_x: float, half_y: float, height: float) -> "ObjectSpec":
+    """An object made of one primitive (its leaf id is the object id)."""
+    return ObjectSpec(category, category, [part], half_x, half_y, height)
+
+
+def _reseed(texture: Texture, k: int) -> Texture:
+    """The same material with a different noise seed (neighbouring parts do not repeat each other)."""
+    return dataclasses.replace(texture, seed=texture.seed + k)
+
+
 @dataclasses.dataclass
 class ObjectSpec:
     """An object ready to be placed: local parts, footprint half sizes (x, y) and height."""
@@ -1049,7 +1076,8 @@ class _RoomBuilder:
             h = hue + r.uniform(-0.08, 0.08)
             c0 = _rgb(h, r.uniform(0.08, 0.3), r.uniform(0.72, 0.88))
             c1 = _rgb(h + r.uniform(-0.1, 0.1), r.uniform(0.15, 0.45), r.uniform(0.45, 0.65))
-            scale = {PAT_STRIPES: r.uniform(0.12, 0.22), PAT_NOISE: r.uniform(0.25, 0.4), PAT_TILES: r.uniform(0.35, 0.6)}[pattern]
+            low, high = {PAT_STRIPES: (0.12, 0.22), PAT_NOISE: (0.25, 0.4), PAT_TILES: (0.35, 0.6)}[pattern]
+            scale = r.uniform(low, high)
             axis = 0 if pattern == PAT_STRIPES else 1
             return Texture(pattern, c0, c1, scale * ts, 0.8 * tc, 0.25, 0.3 * ts, axis, seed, offset)
         if kind == "floor":
@@ -1112,7 +1140,8 @@ class _RoomBuilder:
             pattern = int(r.choice([PAT_NOISE, PAT_RINGS, PAT_CHECKER, PAT_STRIPES]))
             c0 = _rgb(r.uniform(0, 1), r.uniform(0.5, 1.0), r.uniform(0.6, 1.0))
             c1 = _rgb(r.uniform(0, 1), r.uniform(0.5, 1.0), r.uniform(0.15, 0.5))
-            scale = {PAT_NOISE: 0.25, PAT_RINGS: 0.12, PAT_CHECKER: 0.1, PAT_STRIPES: 0.1}[pattern] * r.uniform(0.8, 1.3)
+            scale = {PAT_NOISE: 0.25, PAT_RINGS: 0.12, PAT_CHECKER: 0.1, PAT_STRIPES: 0.1}[pattern]
+            scale *= r.uniform(0.8, 1.3)
             return Texture(pattern, c0, c1, scale * ts, 1.2 * tc, 0.35, 0.12 * ts, 1, seed, offset)
         if kind == "sky":
             c0 = _rgb(0.58, 0.15, 0.98)
@@ -1135,6 +1164,10 @@ class _RoomBuilder:
             c1 = _rgb(h, r.uniform(0.3, 0.6), 0.6)
             return Texture(PAT_STRIPES, c0, c1, 0.06 * ts, 0.6 * tc, 0.1, 0.05 * ts, 2, seed, offset)
         raise ValueError(f"unknown texture kind {kind!r}")
+
+    def texture_of(self, *kinds: str) -> Texture:
+        """A random texture of one of the material families ``kinds``."""
+        return self.texture(str(self.rng.choice(kinds)))
 
     # --- geometry helpers ----------------------------------------------------------------------
     def wall_frame(self, wall: int) -> tuple[np.ndarray, np.ndarray, float]:
@@ -1191,18 +1224,21 @@ class _RoomBuilder:
     def build_structure(self) -> None:
         lx, ly, lz = self.lx, self.ly, self.lz
         th = 0.1  # wall thickness (outside the room)
-        floor = ObjectSpec("floor", "floor", [LocalPart(None, SHAPE_BOX, (0, 0, -th / 2), (lx / 2 + th, ly / 2 + th, th / 2), self.texture("floor"))], 0, 0, 0)
+        slab = (lx / 2 + th, ly / 2 + th, th / 2)
+        floor = _single("floor", _box(None, (0, 0, -th / 2), slab, self.texture("floor")), 0, 0, 0)
         self.place(floor, np.zeros(3), np.eye(3), structural=True)
-        ceiling = ObjectSpec("ceiling", "ceiling", [LocalPart(None, SHAPE_BOX, (0, 0, lz + th / 2), (lx / 2 + th, ly / 2 + th, th / 2), self.texture("ceiling"))], 0, 0, 0)
+        ceiling = _single("ceiling", _box(None, (0, 0, lz + th / 2), slab, self.texture("ceiling")), 0, 0, 0)
         self.place(ceiling, np.zeros(3), np.eye(3), structural=True)
         wall_tex = self.texture("wall")
         accent = int(self.rng.integers(0, 4))
         for wall in range(4):
             origin, rotation, length = self.wall_frame(wall)
             tex = self.texture("wall") if wall == accent else dataclasses.replace(
-                wall_tex, seed=int(self.rng.integers(0, 2**20)), offset=tuple(float(v) for v in self.rng.uniform(0, 10, 3)))
+                wall_tex, seed=int(self.rng.integers(0, 2**20)),
+                offset=tuple(float(v) for v in self.rng.uniform(0, 10, 3)))
             # extend along the wall so that the corners are closed
-            spec = ObjectSpec("wall", "wall", [LocalPart(None, SHAPE_BOX, (0, -th / 2, lz / 2), (length / 2 + th, th / 2, lz / 2 + th), tex)], 0, 0, 0)
+            half = (length / 2 + th, th / 2, lz / 2 + th)
+            spec = _single("wall", _box(None, (0, -th / 2, lz / 2), half, tex), 0, 0, 0)
             key = self.place(spec, origin, rotation, structural=True)
             self.nodes[key].name = f"wall_{'SENW'[wall]}"
 
@@ -1212,24 +1248,26 @@ class _RoomBuilder:
         w, d, h = r.uniform(1.1, 1.5), r.uniform(0.7, 0.9), r.uniform(0.72, 0.76)
         top_t = 0.045
         wood = self.texture("wood")
-        leg_tex = dataclasses.replace(wood, seed=wood.seed + 1)
-        parts = [LocalPart("top", SHAPE_BOX, (0, 0, h - top_t / 2), (w / 2, d / 2, top_t / 2), wood)]
+        leg_tex = _reseed(wood, 1)
+        parts = [_box("top", (0, 0, h - top_t / 2), (w / 2, d / 2, top_t / 2), wood)]
         round_legs = bool(r.integers(0, 2))
         for i, (sx, sy) in enumerate(((-1, -1), (1, -1), (1, 1), (-1, 1))):
             c = (sx * (w / 2 - 0.07), sy * (d / 2 - 0.07), (h - top_t) / 2)
             if round_legs:
-                parts.append(LocalPart(f"leg_{i + 1}", SHAPE_FRUSTUM, c, (0.028, 0.034, (h - top_t) / 2), leg_tex))
+                parts.append(_frustum(f"leg_{i + 1}", c, (0.028, 0.034, (h - top_t) / 2), leg_tex))
             else:
-                parts.append(LocalPart(f"leg_{i + 1}", SHAPE_BOX, c, (0.03, 0.03, (h - top_t) / 2), leg_tex))
+                parts.append(_box(f"leg_{i + 1}", c, (0.03, 0.03, (h - top_t) / 2), leg_tex))
         return ObjectSpec("table", "table", parts, w / 2, d / 2, h)
 
     def spec_chair(self, wood: Texture, fabric: Texture) -> ObjectSpec:
         seat_h, hw, hd = 0.46, 0.22, 0.22
-        parts = [LocalPart("seat", SHAPE_BOX, (0, 0, seat_h - 0.03), (hw, hd, 0.03), fabric)]
+        parts = [_box("seat", (0, 0, seat_h - 0.03), (hw, hd, 0.03), fabric)]
         for i, (sx, sy) in enumerate(((-1, -1), (1, -1), (1, 1), (-1, 1))):
-            parts.append(LocalPart(f"leg_{i + 1}", SHAPE_BOX, (sx * (hw - 0.025), sy * (hd - 0.025), (seat_h - 0.06) / 2), (0.022, 0.022, (seat_h - 0.06) / 2), wood))
+            leg_h = (seat_h - 0.06) / 2
+            center = (sx * (hw - 0.025), sy * (hd - 0.025), leg_h)
+            parts.append(_box(f"leg_{i + 1}", center, (0.022, 0.022, leg_h), wood))
         # backrest at local -y (the chair faces +y)
-        parts.append(LocalPart("back", SHAPE_BOX, (0, -hd + 0.02, seat_h + 0.24), (hw, 0.02, 0.24), wood))
+        parts.append(_box("back", (0, -hd + 0.02, seat_h + 0.24), (hw, 0.02, 0.24), wood))
         return ObjectSpec("chair", "chair", parts, hw, hd, seat_h + 0.48)
 
     def add_table_set(self) -> bool:
@@ -1259,7 +1297,8 @@ class _RoomBuilder:
                 if self.room_left() <= 0:
                     break
                 jitter = r.uniform(-0.1, 0.1)
-                self.place(self.spec_chair(wood, fabric), origin + rotation @ local, rotation @ rot_z(chair_yaw + jitter), parent=group)
+                self.place(self.spec_chair(wood, fabric), origin + rotation @ local,
+                           rotation @ rot_z(chair_yaw + jitter), parent=group)
             self.surfaces.append(_Surface(origin + rotation @ np.array([0, 0, table.height]), rotation,
                                           table.half_x - 0.04, table.half_y - 0.04, 0.6, group))
             self.table_set = (origin, rotation, table.half_x, table.half_y, group)
@@ -1293,17 +1332,17 @@ class _RoomBuilder:
         r = self.rng
         w, d, h = r.uniform(0.8, 1.2), r.uniform(0.32, 0.4), r.uniform(1.5, 1.9)
         t = 0.025
-        wood = self.texture(str(r.choice(["wood", "paint"])))
-        tex = lambda k: dataclasses.replace(wood, seed=wood.seed + k)  # noqa: E731
+        wood = self.texture_of("wood", "paint")
+        tex = lambda k: _reseed(wood, k)  # noqa: E731
         n_boards = int(r.integers(3, 5))
         parts = [
-            LocalPart("side_left", SHAPE_BOX, (-w / 2 + t / 2, 0, h / 2), (t / 2, d / 2, h / 2), tex(1)),
-            LocalPart("side_right", SHAPE_BOX, (w / 2 - t / 2, 0, h / 2), (t / 2, d / 2, h / 2), tex(2)),
-            LocalPart("back", SHAPE_BOX, (0, -d / 2 + 0.005, h / 2), (w / 2 - t, 0.005, h / 2), tex(3)),
+            _box("side_left", (-w / 2 + t / 2, 0, h / 2), (t / 2, d / 2, h / 2), tex(1)),
+            _box("side_right", (w / 2 - t / 2, 0, h / 2), (t / 2, d / 2, h / 2), tex(2)),
+            _box("back", (0, -d / 2 + 0.005, h / 2), (w / 2 - t, 0.005, h / 2), tex(3)),
         ]
         levels = np.linspace(0.06, h - t / 2, n_boards + 1)
         for i, zc in enumerate(levels):
-            parts.append(LocalPart(f"board_{i + 1}", SHAPE_BOX, (0, 0, zc), (w / 2 - t, d / 2, t / 2), tex(4 + i)))
+            parts.append(_box(f"board_{i + 1}", (0, 0, zc), (w / 2 - t, d / 2, t / 2), tex(4 + i)))
         spec = ObjectSpec("shelf", "shelf", parts, w / 2, d / 2, h)
         placed = self._against_wall(spec)
         if placed is None:
@@ -1323,13 +1362,13 @@ class _RoomBuilder:
         r = self.rng
         w, d = r.uniform(1.6, 2.2), r.uniform(0.8, 0.9)
         fabric = self.texture("fabric")
-        tex = lambda k: dataclasses.replace(fabric, seed=fabric.seed + k)  # noqa: E731
+        tex = lambda k: _reseed(fabric, k)  # noqa: E731
         arm, back_d, seat_top = 0.16, 0.2, 0.44
         parts = [
-            LocalPart("base", SHAPE_BOX, (0, 0.02, 0.15), (w / 2 - arm, d / 2 - 0.02, 0.15), tex(1)),
-            LocalPart("back", SHAPE_BOX, (0, -d / 2 + back_d / 2, 0.42), (w / 2, back_d / 2, 0.42), tex(2)),
-            LocalPart("arm_left", SHAPE_BOX, (-w / 2 + arm / 2, 0.0, 0.31), (arm / 2, d / 2, 0.31), tex(3)),
-            LocalPart("arm_right", SHAPE_BOX, (w / 2 - arm / 2, 0.0, 0.31), (arm / 2, d / 2, 0.31), tex(4)),
+            _box("base", (0, 0.02, 0.15), (w / 2 - arm, d / 2 - 0.02, 0.15), tex(1)),
+            _box("back", (0, -d / 2 + back_d / 2, 0.42), (w / 2, back_d / 2, 0.42), tex(2)),
+            _box("arm_left", (-w / 2 + arm / 2, 0.0, 0.31), (arm / 2, d / 2, 0.31), tex(3)),
+            _box("arm_right", (w / 2 - arm / 2, 0.0, 0.31), (arm / 2, d / 2, 0.31), tex(4)),
         ]
         n_cushions = 2 if w < 1.9 else 3
         inner = w - 2 * arm
@@ -1337,9 +1376,9 @@ class _RoomBuilder:
         cushion_tex = self.texture("fabric")
         for i in range(n_cushions):
             cx = -inner / 2 + cw * (i + 0.5)
-            parts.append(LocalPart(f"cushion_{i + 1}", SHAPE_BOX, (cx, back_d / 2 + 0.01, (0.3 + seat_top) / 2),
+            parts.append(_box(f"cushion_{i + 1}", (cx, back_d / 2 + 0.01, (0.3 + seat_top) / 2),
                                    (cw / 2 - 0.01, (d - back_d) / 2 - 0.01, (seat_top - 0.3) / 2),
-                                   dataclasses.replace(cushion_tex, seed=cushion_tex.seed + i)))
+                                   _reseed(cushion_tex, i)))
         spec = ObjectSpec("sofa", "sofa", parts, w / 2, d / 2, 0.84)
         placed = self._against_wall(spec)
         if placed is None:
@@ -1350,7 +1389,8 @@ class _RoomBuilder:
         # throw pillows leaning on the back
         for i in range(min(2, self.room_left())):
             side = -1 if i == 0 else 1
-            pillow = ObjectSpec("pillow", "pillow", [LocalPart(None, SHAPE_ELLIPSOID, (0, 0, 0.2), (0.2, 0.08, 0.2), self.texture("fabric"))], 0.2, 0.08, 0.4)
+            part = _ellipsoid(None, (0, 0, 0.2), (0.2, 0.08, 0.2), self.texture("fabric"))
+            pillow = _single("pillow", part, 0.2, 0.08, 0.4)
             local = np.array([side * (inner / 2 - 0.3), -d / 2 + back_d + 0.08, seat_top - 0.03])
             self.place(pillow, origin + rotation @ local, rotation @ rot_x(-0.25), parent=group)
         return True
@@ -1358,20 +1398,20 @@ class _RoomBuilder:
     def add_cabinet(self) -> bool:
         r = self.rng
         w, d, h = r.uniform(0.8, 1.4), r.uniform(0.4, 0.5), r.uniform(0.7, 0.9)
-        body = self.texture(str(r.choice(["wood", "paint"])))
+        body = self.texture_of("wood", "paint")
         front_tex = self.texture("paint")
         knob = self.texture("metal")
         front = 0.055  # drawer fronts and knobs stick out this far
         yb = -front / 2  # body centre: its back touches the local -y side of the footprint
-        parts = [LocalPart("body", SHAPE_BOX, (0, yb, h / 2 + 0.03), (w / 2, d / 2, h / 2 - 0.03), body),
-                 LocalPart("plinth", SHAPE_BOX, (0, yb, 0.015), (w / 2 - 0.03, d / 2 - 0.03, 0.015), dataclasses.replace(body, seed=body.seed + 9))]
+        parts = [_box("body", (0, yb, h / 2 + 0.03), (w / 2, d / 2, h / 2 - 0.03), body),
+                 _box("plinth", (0, yb, 0.015), (w / 2 - 0.03, d / 2 - 0.03, 0.015), _reseed(body, 9))]
         n_drawers = int(r.integers(2, 4))
         dh = (h - 0.1) / n_drawers
         for i in range(n_drawers):
             zc = 0.06 + dh * (i + 0.5)
-            parts.append(LocalPart(f"drawer_{i + 1}", SHAPE_BOX, (0, yb + d / 2 + 0.01, zc), (w / 2 - 0.04, 0.01, dh / 2 - 0.015),
-                                   dataclasses.replace(front_tex, seed=front_tex.seed + i)))
-            parts.append(LocalPart(f"knob_{i + 1}", SHAPE_ELLIPSOID, (0, yb + d / 2 + 0.035, zc), (0.03, 0.018, 0.03), knob))
+            parts.append(_box(f"drawer_{i + 1}", (0, yb + d / 2 + 0.01, zc), (w / 2 - 0.04, 0.01, dh / 2 - 0.015),
+                                   _reseed(front_tex, i)))
+            parts.append(_ellipsoid(f"knob_{i + 1}", (0, yb + d / 2 + 0.035, zc), (0.03, 0.018, 0.03), knob))
         spec = ObjectSpec("cabinet", "cabinet", parts, w / 2, d / 2 + front / 2, h)
         placed = self._against_wall(spec)
         if placed is None:
@@ -1391,9 +1431,9 @@ class _RoomBuilder:
         metal = self.texture("metal")
         rb, rt, sh = r.uniform(0.2, 0.26), r.uniform(0.13, 0.17), r.uniform(0.14, 0.18)
         parts = [
-            LocalPart("base", SHAPE_FRUSTUM, (0, 0, 0.02), (0.17, 0.14, 0.02), metal),
-            LocalPart("pole", SHAPE_FRUSTUM, (0, 0, 0.04 + (h - 0.04) / 2), (0.022, 0.022, (h - 0.04) / 2), dataclasses.replace(metal, seed=metal.seed + 1)),
-            LocalPart("shade", SHAPE_FRUSTUM, (0, 0, h + sh - 0.05), (rb, rt, sh), self.texture("shade")),
+            _frustum("base", (0, 0, 0.02), (0.17, 0.14, 0.02), metal),
+            _frustum("pole", (0, 0, 0.04 + (h - 0.04) / 2), (0.022, 0.022, (h - 0.04) / 2), _reseed(metal, 1)),
+            _frustum("shade", (0, 0, h + sh - 0.05), (rb, rt, sh), self.texture("shade")),
         ]
         return ObjectSpec("floor_lamp", "lamp", parts, rb, rb, h + 2 * sh)
 
@@ -1404,8 +1444,8 @@ class _RoomBuilder:
         fr = r.uniform(0.22, 0.3) * scale
         fz = r.uniform(1.1, 1.6) * fr
         parts = [
-            LocalPart("pot", SHAPE_FRUSTUM, (0, 0, ph / 2), (rb, rt, ph / 2), self.texture("ceramic")),
-            LocalPart("foliage", SHAPE_ELLIPSOID, (0, 0, ph + fz * 0.85), (fr, fr * r.uniform(0.8, 1.0), fz), self.texture("plant")),
+            _frustum("pot", (0, 0, ph / 2), (rb, rt, ph / 2), self.texture("ceramic")),
+            _ellipsoid("foliage", (0, 0, ph + fz * 0.85), (fr, fr * r.uniform(0.8, 1.0), fz), self.texture("plant")),
         ]
         return ObjectSpec("plant", "plant", parts, max(fr, rt), max(fr, rt), ph + fz * 1.85)
 
@@ -1433,9 +1473,9 @@ class _RoomBuilder:
         rad, h = r.uniform(0.25, 0.32), r.uniform(0.5, 0.6)
         wood = self.texture("wood")
         parts = [
-            LocalPart("top", SHAPE_FRUSTUM, (0, 0, h - 0.015), (rad, rad, 0.015), wood),
-            LocalPart("stem", SHAPE_FRUSTUM, (0, 0, h / 2), (0.035, 0.035, h / 2 - 0.03), dataclasses.replace(wood, seed=wood.seed + 1)),
-            LocalPart("foot", SHAPE_FRUSTUM, (0, 0, 0.02), (0.2, 0.16, 0.02), dataclasses.replace(wood, seed=wood.seed + 2)),
+            _frustum("top", (0, 0, h - 0.015), (rad, rad, 0.015), wood),
+            _frustum("stem", (0, 0, h / 2), (0.035, 0.035, h / 2 - 0.03), _reseed(wood, 1)),
+            _frustum("foot", (0, 0, 0.02), (0.2, 0.16, 0.02), _reseed(wood, 2)),
         ]
         group = self.new_group("side_table_set")
         placed = self.add_free_standing(ObjectSpec("side_table", "side_table", parts, rad, rad, h), parent=group)
@@ -1450,9 +1490,9 @@ class _RoomBuilder:
         w, h = r.uniform(0.82, 0.95), r.uniform(2.0, 2.1)
         tex = self.texture("paint")
         parts = [
-            LocalPart("panel", SHAPE_BOX, (0, 0.02, h / 2), (w / 2, 0.02, h / 2), tex),
-            LocalPart("frame", SHAPE_BOX, (0, 0.015, h / 2 + 0.02), (w / 2 + 0.06, 0.015, h / 2 + 0.02), self.texture("paint")),
-            LocalPart("handle", SHAPE_ELLIPSOID, (w / 2 - 0.1, 0.065, 1.0), (0.05, 0.025, 0.025), self.texture("metal")),
+            _box("panel", (0, 0.02, h / 2), (w / 2, 0.02, h / 2), tex),
+            _box("frame", (0, 0.015, h / 2 + 0.02), (w / 2 + 0.06, 0.015, h / 2 + 0.02), self.texture("paint")),
+            _ellipsoid("handle", (w / 2 - 0.1, 0.065, 1.0), (0.05, 0.025, 0.025), self.texture("metal")),
         ]
         spec = ObjectSpec("door", "door", parts, w / 2 + 0.06, 0.03, h + 0.04)
         # the door needs free floor in front of it
@@ -1475,26 +1515,28 @@ class _RoomBuilder:
         if kind == "window":
             w, h, z0 = r.uniform(1.0, 1.4), r.uniform(1.0, 1.3), r.uniform(0.85, 1.0)
             frame_tex = self.texture("paint")
-            parts = [LocalPart("frame", SHAPE_BOX, (0, 0.02, h / 2), (w / 2, 0.02, h / 2), frame_tex)]
+            parts = [_box("frame", (0, 0.02, h / 2), (w / 2, 0.02, h / 2), frame_tex)]
             pane_w = (w - 0.15) / 2
             for i, sx in enumerate((-1, 1)):
-                parts.append(LocalPart(f"pane_{i + 1}", SHAPE_BOX, (sx * (pane_w / 2 + 0.025), 0.045, h / 2), (pane_w / 2, 0.005, h / 2 - 0.05), self.texture("sky")))
-            parts.append(LocalPart("sill", SHAPE_BOX, (0, 0.08, -0.02), (w / 2 + 0.05, 0.08, 0.02), dataclasses.replace(frame_tex, seed=frame_tex.seed + 5)))
+                parts.append(_box(f"pane_{i + 1}", (sx * (pane_w / 2 + 0.025), 0.045, h / 2),
+                                  (pane_w / 2, 0.005, h / 2 - 0.05), self.texture("sky")))
+            parts.append(_box("sill", (0, 0.08, -0.02), (w / 2 + 0.05, 0.08, 0.02), _reseed(frame_tex, 5)))
             spec = ObjectSpec("window", "window", parts, w / 2 + 0.05, 0.07, h)
         elif kind == "painting":
             w, h = r.uniform(0.5, 1.0), r.uniform(0.4, 0.8)
             z0 = r.uniform(1.25, 1.55) - h / 2
             parts = [
-                LocalPart("frame", SHAPE_BOX, (0, 0.02, h / 2), (w / 2, 0.02, h / 2), self.texture(str(r.choice(["wood", "dark"])))),
-                LocalPart("canvas", SHAPE_BOX, (0, 0.042, h / 2), (w / 2 - 0.05, 0.005, h / 2 - 0.05), self.texture("art")),
+                _box("frame", (0, 0.02, h / 2), (w / 2, 0.02, h / 2), self.texture_of("wood", "dark")),
+                _box("canvas", (0, 0.042, h / 2), (w / 2 - 0.05, 0.005, h / 2 - 0.05), self.texture("art")),
             ]
             spec = ObjectSpec("painting", "painting", parts, w / 2, 0.03, h)
         elif kind == "clock":
             rad = r.uniform(0.14, 0.2)
             z0 = r.uniform(1.6, 1.9)
             parts = [
-                LocalPart("body", SHAPE_FRUSTUM, (0, 0.025, rad), (rad, rad * 0.95, 0.025), self.texture("ceramic"), rotation=rot_x(-math.pi / 2)),
-                LocalPart("hand", SHAPE_BOX, (0, 0.052, rad + rad * 0.35), (0.01, 0.005, rad * 0.35), self.texture("dark")),
+                _frustum("body", (0, 0.025, rad), (rad, rad * 0.95, 0.025), self.texture("ceramic"),
+                         rotation=rot_x(-math.pi / 2)),  # axis out of the wall
+                _box("hand", (0, 0.052, rad + rad * 0.35), (0.01, 0.005, rad * 0.35), self.texture("dark")),
             ]
             spec = ObjectSpec("clock", "clock", parts, rad, 0.03, 2 * rad)
         else:
@@ -1517,7 +1559,7 @@ class _RoomBuilder:
                 w, d = hx + r.uniform(0.4, 0.7), hy + r.uniform(0.5, 0.8)
                 x0, x1, y0, y1 = self.world_rect(origin, rotation, w, d)
                 if x0 > -self.lx / 2 and x1 < self.lx / 2 and y0 > -self.ly / 2 and y1 < self.ly / 2:
-                    spec = ObjectSpec("rug", "rug", [LocalPart(None, SHAPE_BOX, (0, 0, 0.006), (w, d, 0.006), self.texture("rug"))], w, d, 0.012)
+                    spec = _single("rug", _box(None, (0, 0, 0.006), (w, d, 0.006), self.texture("rug")), w, d, 0.012)
                     self.place(spec, origin, rotation, parent=group)
                     return True
         for _ in range(100):
@@ -1529,7 +1571,7 @@ class _RoomBuilder:
             rect = self.world_rect(origin, rotation, w, d)
             if self.floor_free(rect):
                 self.occupy_floor(rect, 0.0)
-                spec = ObjectSpec("rug", "rug", [LocalPart(None, SHAPE_BOX, (0, 0, 0.006), (w, d, 0.006), self.texture("rug"))], w, d, 0.012)
+                spec = _single("rug", _box(None, (0, 0, 0.006), (w, d, 0.006), self.texture("rug")), w, d, 0.012)
                 self.place(spec, origin, rotation)
                 return True
         return False
@@ -1539,13 +1581,16 @@ class _RoomBuilder:
         kind = str(r.choice(["ball", "basket", "basket", "ottoman", "plant", "plant"]))
         if kind == "ball":
             rad = r.uniform(0.1, 0.16)
-            spec = ObjectSpec("ball", "ball", [LocalPart(None, SHAPE_ELLIPSOID, (0, 0, rad), (rad, rad, rad), self.texture(str(r.choice(["ceramic", "fabric"]))))], rad, rad, 2 * rad)
+            part = _ellipsoid(None, (0, 0, rad), (rad, rad, rad), self.texture_of("ceramic", "fabric"))
+            spec = _single("ball", part, rad, rad, 2 * rad)
         elif kind == "basket":
             hx, hy, hz = r.uniform(0.18, 0.28), r.uniform(0.15, 0.22), r.uniform(0.12, 0.2)
-            spec = ObjectSpec("basket", "basket", [LocalPart(None, SHAPE_BOX, (0, 0, hz), (hx, hy, hz), self.texture(str(r.choice(["wood", "fabric"]))))], hx, hy, 2 * hz)
+            part = _box(None, (0, 0, hz), (hx, hy, hz), self.texture_of("wood", "fabric"))
+            spec = _single("basket", part, hx, hy, 2 * hz)
         elif kind == "ottoman":
             rad, hz = r.uniform(0.22, 0.3), r.uniform(0.18, 0.22)
-            spec = ObjectSpec("ottoman", "ottoman", [LocalPart(None, SHAPE_FRUSTUM, (0, 0, hz), (rad, rad, hz), self.texture("fabric"))], rad, rad, 2 * hz)
+            part = _frustum(None, (0, 0, hz), (rad, rad, hz), self.texture("fabric"))
+            spec = _single("ottoman", part, rad, rad, 2 * hz)
         else:
             spec = self.spec_plant(scale=1.0)
         return self.add_free_standing(spec) is not None
@@ -1556,36 +1601,39 @@ class _RoomBuilder:
         r = self.rng
         if kind == "mug":
             rad, h = r.uniform(0.04, 0.05), r.uniform(0.09, 0.11)
-            parts = [LocalPart(None, SHAPE_FRUSTUM, (0, 0, h / 2), (rad * 0.9, rad, h / 2), self.texture("ceramic"))]
+            parts = [_frustum(None, (0, 0, h / 2), (rad * 0.9, rad, h / 2), self.texture("ceramic"))]
             spec = ObjectSpec("mug", "mug", parts, rad, rad, h)
         elif kind == "vase":
             rb, rt, h = r.uniform(0.05, 0.08), r.uniform(0.03, 0.06), r.uniform(0.18, 0.32)
-            parts = [LocalPart("body", SHAPE_FRUSTUM, (0, 0, h / 2), (rb, rt, h / 2), self.texture("ceramic"))]
+            parts = [_frustum("body", (0, 0, h / 2), (rb, rt, h / 2), self.texture("ceramic"))]
             if r.uniform() < 0.6:
                 fr = r.uniform(0.08, 0.12)
-                parts.append(LocalPart("flowers", SHAPE_ELLIPSOID, (0, 0, h + fr * 0.8), (fr, fr, fr), self.texture(str(r.choice(["plant", "art"])))))
+                parts.append(_ellipsoid("flowers", (0, 0, h + fr * 0.8), (fr, fr, fr), self.texture_of("plant", "art")))
                 h = h + fr * 1.8
             else:
                 parts[0].name = None
-            spec = ObjectSpec("vase", "vase", parts, max(rb, 0.1 if len(parts) > 1 else rb), max(rb, 0.1 if len(parts) > 1 else rb), h)
+            ext = max(rb, 0.1) if len(parts) > 1 else rb
+            spec = ObjectSpec("vase", "vase", parts, ext, ext, h)
         elif kind == "bowl":
             rad = r.uniform(0.1, 0.14)
-            parts = [LocalPart(None, SHAPE_ELLIPSOID, (0, 0, 0.05), (rad, rad, 0.05), self.texture("ceramic"))]
+            parts = [_ellipsoid(None, (0, 0, 0.05), (rad, rad, 0.05), self.texture("ceramic"))]
             spec = ObjectSpec("bowl", "bowl", parts, rad, rad, 0.1)
         elif kind == "fruit_bowl":
             rad = r.uniform(0.13, 0.16)
-            parts = [LocalPart("bowl", SHAPE_FRUSTUM, (0, 0, 0.035), (rad * 0.6, rad, 0.035), self.texture("ceramic"))]
+            parts = [_frustum("bowl", (0, 0, 0.035), (rad * 0.6, rad, 0.035), self.texture("ceramic"))]
             for i in range(3):
                 ang = 2 * math.pi * i / 3 + r.uniform(-0.3, 0.3)
                 fr = r.uniform(0.035, 0.045)
-                parts.append(LocalPart(f"fruit_{i + 1}", SHAPE_ELLIPSOID, (0.45 * rad * math.cos(ang), 0.45 * rad * math.sin(ang), 0.07 + fr * 0.6), (fr, fr, fr), self.texture("ceramic")))
+                center = (0.45 * rad * math.cos(ang), 0.45 * rad * math.sin(ang), 0.07 + fr * 0.6)
+                parts.append(_ellipsoid(f"fruit_{i + 1}", center, (fr, fr, fr), self.texture("ceramic")))
             spec = ObjectSpec("fruit_bowl", "fruit_bowl", parts, rad, rad, 0.16)
         elif kind == "book_pile":
             parts = []
             z = 0.0
             for i in range(int(r.integers(2, 4))):
                 bx, by, bz = r.uniform(0.09, 0.12), r.uniform(0.13, 0.16), r.uniform(0.012, 0.025)
-                parts.append(LocalPart(f"book_{i + 1}", SHAPE_BOX, (r.uniform(-0.01, 0.01), r.uniform(-0.01, 0.01), z + bz), (bx, by, bz), self.texture("paper"),
+                center = (r.uniform(-0.01, 0.01), r.uniform(-0.01, 0.01), z + bz)
+                parts.append(_box(f"book_{i + 1}", center, (bx, by, bz), self.texture("paper"),
                                        rotation=rot_z(r.uniform(-0.2, 0.2))))
                 z += 2 * bz
             spec = ObjectSpec("book_pile", "books", parts, 0.17, 0.2, z)
@@ -1599,7 +1647,7 @@ class _RoomBuilder:
                 bh = min(bh, (clearance - 0.01) / 2)
                 if bh < 0.06:
                     return None
-                parts.append(LocalPart(f"book_{i + 1}", SHAPE_BOX, (x + bw, 0, bh), (bw, bd, bh), self.texture("paper")))
+                parts.append(_box(f"book_{i + 1}", (x + bw, 0, bh), (bw, bd, bh), self.texture("paper")))
                 x += 2 * bw + 0.002
                 max_h = max(max_h, 2 * bh)
             for part in parts:
@@ -1609,15 +1657,17 @@ class _RoomBuilder:
         elif kind == "bottle":
             rad, h = r.uniform(0.03, 0.045), r.uniform(0.18, 0.26)
             glass = self.texture("ceramic")
-            parts = [LocalPart("body", SHAPE_FRUSTUM, (0, 0, h * 0.35), (rad, rad, h * 0.35), glass),
-                     LocalPart("neck", SHAPE_FRUSTUM, (0, 0, h * 0.7 + h * 0.15), (rad, rad * 0.35, h * 0.15), dataclasses.replace(glass, seed=glass.seed + 1))]
+            parts = [_frustum("body", (0, 0, h * 0.35), (rad, rad, h * 0.35), glass),
+                     _frustum("neck", (0, 0, h * 0.7 + h * 0.15), (rad, rad * 0.35, h * 0.15), _reseed(glass, 1))]
             spec = ObjectSpec("bottle", "bottle", parts, rad, rad, h)
         elif kind == "ball":
             rad = r.uniform(0.05, 0.09)
-            spec = ObjectSpec("ball", "ball", [LocalPart(None, SHAPE_ELLIPSOID, (0, 0, rad), (rad, rad, rad), self.texture("ceramic"))], rad, rad, 2 * rad)
+            part = _ellipsoid(None, (0, 0, rad), (rad, rad, rad), self.texture("ceramic"))
+            spec = _single("ball", part, rad, rad, 2 * rad)
         elif kind == "box_small":
             hx, hy, hz = r.uniform(0.06, 0.12), r.uniform(0.05, 0.1), r.uniform(0.04, 0.09)
-            spec = ObjectSpec("box", "box", [LocalPart(None, SHAPE_BOX, (0, 0, hz), (hx, hy, hz), self.texture(str(r.choice(["paper", "wood", "fabric"]))))], hx, hy, 2 * hz)
+            part = _box(None, (0, 0, hz), (hx, hy, hz), self.texture_of("paper", "wood", "fabric"))
+            spec = _single("box", part, hx, hy, 2 * hz)
         elif kind == "plant_small":
             spec = self.spec_plant(scale=0.45)
         elif kind == "table_lamp":
@@ -1626,9 +1676,10 @@ class _RoomBuilder:
             shade_b, shade_t, shade_h = r.uniform(0.13, 0.17), r.uniform(0.08, 0.11), r.uniform(0.09, 0.12)
             metal = self.texture("metal")
             parts = [
-                LocalPart("base", SHAPE_FRUSTUM, (0, 0, 0.02), (rb, rb * 0.8, 0.02), metal),
-                LocalPart("stem", SHAPE_FRUSTUM, (0, 0, 0.04 + stem_h / 2), (0.015, 0.015, stem_h / 2), dataclasses.replace(metal, seed=metal.seed + 1)),
-                LocalPart("shade", SHAPE_FRUSTUM, (0, 0, 0.04 + stem_h + shade_h - 0.03), (shade_b, shade_t, shade_h), self.texture("shade")),
+                _frustum("base", (0, 0, 0.02), (rb, rb * 0.8, 0.02), metal),
+                _frustum("stem", (0, 0, 0.04 + stem_h / 2), (0.015, 0.015, stem_h / 2), _reseed(metal, 1)),
+                _frustum("shade", (0, 0, 0.04 + stem_h + shade_h - 0.03), (shade_b, shade_t, shade_h),
+                         self.texture("shade")),
             ]
             spec = ObjectSpec("table_lamp", "lamp", parts, shade_b, shade_b, 0.04 + stem_h + 2 * shade_h - 0.03)
         else:
@@ -1652,7 +1703,9 @@ class _RoomBuilder:
             x = r.uniform(-surface.half_x + ext_x, surface.half_x - ext_x)
             y = r.uniform(-surface.half_y + ext_y, surface.half_y - ext_y)
             rect = (x - ext_x, x + ext_x, y - ext_y, y + ext_y)
-            if any(rect[0] < b[1] + 0.02 and b[0] < rect[1] + 0.02 and rect[2] < b[3] + 0.02 and b[2] < rect[3] + 0.02 for b in surface.occupied):
+            gap = 0.02
+            if any(rect[0] < b[1] + gap and b[0] < rect[1] + gap and rect[2] < b[3] + gap and b[2] < rect[3] + gap
+                   for b in surface.occupied):
                 continue
             surface.occupied.append(rect)
             origin = surface.origin + surface.rotation @ np.array([x, y, 0.0])
@@ -1680,7 +1733,8 @@ def build_room(params: SyntheticParams) -> RoomLayout:
     furniture = [k for k in furniture if k not in optional or rng.uniform() >= 0.25]
     order = [furniture[i] for i in rng.permutation(len(furniture))]
     # the big pieces first so that they find wall space
-    order.sort(key=lambda k: {"door": 0, "shelf": 1, "sofa": 1, "cabinet": 1, "table_set": 1, "window": 2, "rug": 4}.get(k, 3))
+    priority = {"door": 0, "shelf": 1, "sofa": 1, "cabinet": 1, "table_set": 1, "window": 2, "rug": 4}
+    order.sort(key=lambda k: priority.get(k, 3))
     for kind in order:
         if b.room_left() <= 0:
             break
@@ -1775,7 +1829,8 @@ def camera_trajectory(params: SyntheticParams) -> list[Camera]:
         radius = params.camera_radius * (1.0 + 0.25 * math.sin(2 * theta + phase[1]))
         height = params.camera_height + params.camera_height_amplitude * math.sin(3 * theta + phase[2])
         yaw = theta + math.radians(params.camera_yaw_amplitude_deg) * math.sin(2 * theta + phase[3])
-        pitch = math.radians(params.camera_pitch_deg + params.camera_pitch_amplitude_deg * math.sin(3 * theta + phase[4]))
+        pitch_deg = params.camera_pitch_deg + params.camera_pitch_amplitude_deg * math.sin(3 * theta + phase[4])
+        pitch = math.radians(pitch_deg)
         position = np.array([radius * math.cos(theta), radius * math.sin(theta), height])
         rotation = look_rotation(yaw, pitch)
         w2c = np.eye(4)
