@@ -97,8 +97,8 @@ def _pairs_per_second(splats: Splats, camera: Camera, features: torch.Tensor, re
         binning = Binning(proj, camera.width, camera.height)
         geom = _geom_array(pack_geometry(proj))
         vals = np.ascontiguousarray(torch.cat([features, proj.normals], 1).numpy().astype(np.float32))
-    args = (geom, vals, binning.boxes, binning.offsets, binning.lists, binning.width, binning.height,
-            binning.tiles_x, 0.01)
+    args = (binning.entry_geometry(geom), binning.entry_boxes, binning.lists, vals, binning.offsets,
+            binning.width, binning.height, binning.tiles_x, 0.01)
     pairs = int(forward_kernel(*args)[-1].sum())
     ms = _time(lambda: forward_kernel(*args), repeats)
     return {"kernel_forward_ms": ms, "pairs": pairs, "pair_evals_per_s": pairs / (ms / 1000.0),

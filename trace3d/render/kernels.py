@@ -40,8 +40,9 @@ TILE_PIXELS = TILE * TILE
 GEOM_COLS = 16
 GEOM_GRAD_COLS = 15
 LEVEL_SLACK = 1e-3
-# value-preserving fast-math flags only: forward and backward must make identical skip decisions
-FASTMATH = {"nnan", "ninf", "nsz"}
+# value-preserving fast-math flags only (no contraction, no reassociation, infinities allowed): the
+# forward, backward and trace kernels must make bit-identical skip decisions for a pair
+FASTMATH = {"nsz"}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -89,22 +90,83 @@ def bin_tiles(boxes, order, tiles_x, tiles_y):
 
 
 # ----------------------------------------------------------------------------------------------
+# per-lane evaluation (shared by every kernel so that they make identical decisions)
+# ----------------------------------------------------------------------------------------------
+
+
+@njit(inline="always", fastmath=FASTMATH)
+def exp_neg(s):
+    """exp(-s) for s >= 0 in float32 from basic operations only (so that loops vectorise without
+    SVML): s = (n + f) ln 2, 2^-f by a degree-8 Taylor series of exp on (-ln 2, 0], 2^-n by
+    selects.  Relative error about 1e-6 (from rounding s log2 e); exp(-20) and below read as
+    exp(-20), far under the 1/255 alpha threshold."""
+    s = min(s, np.float32(20.0))
+    t = s * np.float32(1.4426950408889634)
+    n = np.int32(t)
+    y = (t - np.float32(n)) * np.float32(-0.6931471805599453)
+    p = np.float32(1.0 / 40320.0)
+    p = p * y + np.float32(1.0 / 5040.0)
+    p = p * y + np.float32(1.0 / 720.0)
+    p = p * y + np.float32(1.0 / 120.0)
+    p = p * y + np.float32(1.0 / 24.0)
+    p = p * y + np.float32(1.0 / 6.0)
+    p = p * y + np.float32(0.5)
+    p = p * y + np.float32(1.0)
+    p = p * y + np.float32(1.0)
+    p = p * (np.float32(0.5) if (n & 1) else np.float32(1.0))
+    p = p * (np.float32(0.25) if (n & 2) else np.float32(1.0))
+    p = p * (np.float32(1.0 / 16.0) if (n & 4) else np.float32(1.0))
+    p = p * (np.float32(1.0 / 256.0) if (n & 8) else np.float32(1.0))
+    p = p * (np.float32(1.0 / 65536.0) if (n & 16) else np.float32(1.0))
+    return p
+
+
+@njit(inline="always", fastmath=FASTMATH)
+def eval_lane(x, e0, e1, e2, b0, b1, b2, mx, dy2, opac, tw0, tw1, tw2, near32):
+    """One pixel-splat pair: (alpha or 0 when skipped, depth z, u, v, 1 / c2, disk term used, exp(-sigma)).
+
+    c = (e + x b) with e = A + y D; u, v = c0 / c2, c1 / c2; sigma = min(1/2 (u^2 + v^2),
+    |pixel - centre|^2); z is the plane intersection's depth where the disk term wins and the
+    centre's otherwise (2DGS); alpha = min(0.99, o exp(-sigma)), skipped below 1/255, behind
+    ``near`` or for a ray parallel to the plane."""
+    c0 = e0 + b0 * x
+    c1 = e1 + b1 * x
+    c2 = e2 + b2 * x
+    nonparallel = c2 != np.float32(0.0)
+    inv_c2 = np.float32(1.0) / (c2 if nonparallel else np.float32(1.0))
+    u = c0 * inv_c2
+    v = c1 * inv_c2
+    s_disk = np.float32(0.5) * (u * u + v * v)
+    dx = x - mx
+    s_filt = dx * dx + dy2
+    use_disk = s_disk <= s_filt
+    sigma = s_disk if use_disk else s_filt
+    z = (u * tw0 + v * tw1 + tw2) if use_disk else tw2
+    gauss = exp_neg(sigma)
+    alpha = min(opac * gauss, np.float32(ALPHA_MAX))
+    keep = nonparallel & (alpha >= np.float32(ALPHA_MIN)) & (z > near32)
+    return (alpha if keep else np.float32(0.0)), z, u, v, inv_c2, use_disk, gauss
+
+
+# ----------------------------------------------------------------------------------------------
 # forward
 # ----------------------------------------------------------------------------------------------
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
-def forward_kernel(geom, vals, boxes, offsets, lists, width, height, tiles_x, near):
+def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, near):
     """Front-to-back blending of every tile.
 
     Args:
-        geom: [N, 16] float32; vals: [N, K] float32; boxes: [N, 4] int64; offsets, lists: tile lists.
+        egeom: [E, 16] float32 geometry per tile-list entry (``geom`` gathered by ``lists``);
+        ebox: [E, 4] int32 footprint boxes per entry; lists: [E] int32 splat of each entry;
+        vals: [N, K] float32; offsets: [tiles + 1] int64.
     Returns:
         acc [H, W, K], acc_z [H, W] (sum w z), acc_z2 [H, W] (sum w (z - z_ref)^2 with z_ref the
         depth of the pixel's first blended splat, which keeps the distortion well conditioned),
-        final_t [H, W], median_z [H, W], depth_ref [H, W] (z_ref), last [H, W] int32 (list position + 1 of the last blended splat, 0 if none),
-        median_at [H, W] int32 (list position of the median splat, -1 if none), pairs [tiles] int64
-        (pixel-splat pairs the inner loop visited).
+        final_t [H, W], median_z [H, W], depth_ref [H, W] (z_ref), last [H, W] int32 (list
+        position + 1 of the last blended splat, 0 if none), median_at [H, W] int32 (list position
+        of the median splat, -1 if none), pairs [tiles] int64 (pixel-splat pairs evaluated).
     """
     k_ch = vals.shape[1]
     n_tiles = offsets.shape[0] - 1
@@ -117,8 +179,6 @@ def forward_kernel(geom, vals, boxes, offsets, lists, width, height, tiles_x, ne
     last = np.zeros((height, width), np.int32)
     median_at = np.full((height, width), -1, np.int32)
     pairs = np.zeros(n_tiles, np.int64)
-    alpha_min = np.float32(ALPHA_MIN)
-    alpha_max = np.float32(ALPHA_MAX)
     t_min = np.float32(TRANSMITTANCE_MIN)
     near32 = np.float32(near)
     for t in prange(n_tiles):
@@ -140,32 +200,35 @@ def forward_kernel(geom, vals, boxes, offsets, lists, width, height, tiles_x, ne
         t_ref = np.zeros(TILE_PIXELS, np.float32)
         t_last = np.zeros(TILE_PIXELS, np.int32)
         t_med_at = np.full(TILE_PIXELS, -1, np.int32)
+        xs = np.empty(TILE, np.float32)
+        for i in range(TILE):
+            xs[i] = np.float32(px0 + i) + np.float32(0.5)
+        ra = np.zeros(TILE, np.float32)
+        rz = np.zeros(TILE, np.float32)
         n_done = 0
         visited = 0
         for j in range(start, end):
             g = lists[j]
-            x0 = max(boxes[g, 0], px0)
-            x1 = min(boxes[g, 2], px1)
-            y0 = max(boxes[g, 1], py0)
-            y1 = min(boxes[g, 3], py1)
-            visited += (x1 - x0) * (y1 - y0)
-            a0 = geom[g, 0]
-            a1 = geom[g, 1]
-            a2 = geom[g, 2]
-            b0 = geom[g, 3]
-            b1 = geom[g, 4]
-            b2 = geom[g, 5]
-            d0 = geom[g, 6]
-            d1 = geom[g, 7]
-            d2 = geom[g, 8]
-            tw0 = geom[g, 9]
-            tw1 = geom[g, 10]
-            tw2 = geom[g, 11]
-            mx = geom[g, 12]
-            my = geom[g, 13]
-            opac = geom[g, 14]
-            level = geom[g, 15]
-            level2 = np.float32(2.0) * level
+            x0 = max(ebox[j, 0], px0)
+            x1 = min(ebox[j, 2], px1)
+            y0 = max(ebox[j, 1], py0)
+            y1 = min(ebox[j, 3], py1)
+            a0 = egeom[j, 0]
+            a1 = egeom[j, 1]
+            a2 = egeom[j, 2]
+            b0 = egeom[j, 3]
+            b1 = egeom[j, 4]
+            b2 = egeom[j, 5]
+            d0 = egeom[j, 6]
+            d1 = egeom[j, 7]
+            d2 = egeom[j, 8]
+            tw0 = egeom[j, 9]
+            tw1 = egeom[j, 10]
+            tw2 = egeom[j, 11]
+            mx = egeom[j, 12]
+            my = egeom[j, 13]
+            opac = egeom[j, 14]
+            visited += (y1 - y0) * TILE
             for py in range(y0, y1):
                 y = np.float32(py) + np.float32(0.5)
                 e0 = a0 + d0 * y
@@ -173,37 +236,20 @@ def forward_kernel(geom, vals, boxes, offsets, lists, width, height, tiles_x, ne
                 e2 = a2 + d2 * y
                 dy = y - my
                 dy2 = dy * dy
-                row = (py - py0) * TILE - px0
-                for px in range(x0, x1):
+                # pass 1: all 16 lanes of the row, branch-free (vectorised)
+                for i in range(TILE):
+                    al, zz, _, _, _, _, _ = eval_lane(xs[i], e0, e1, e2, b0, b1, b2, mx, dy2, opac,
+                                                     tw0, tw1, tw2, near32)
+                    ra[i] = al
+                    rz[i] = zz
+                # pass 2: blend the pixels of the footprint that were kept
+                row = (py - py0) * TILE
+                for px in range(x0 - px0, x1 - px0):
+                    alpha = ra[px]
+                    if alpha == np.float32(0.0):
+                        continue
                     p = row + px
                     if done[p]:
-                        continue
-                    x = np.float32(px) + np.float32(0.5)
-                    c0 = e0 + b0 * x
-                    c1 = e1 + b1 * x
-                    c2 = e2 + b2 * x
-                    dx = x - mx
-                    s_filt = dx * dx + dy2
-                    # division-free rejection: both sigma terms above the level (which carries slack)
-                    if s_filt > level and c0 * c0 + c1 * c1 > level2 * (c2 * c2):
-                        continue
-                    if c2 == 0:
-                        continue
-                    inv_c2 = np.float32(1.0) / c2
-                    u = c0 * inv_c2
-                    v = c1 * inv_c2
-                    s_disk = np.float32(0.5) * (u * u + v * v)
-                    use_disk = s_disk <= s_filt
-                    sigma = s_disk if use_disk else s_filt
-                    if sigma > level:
-                        continue
-                    z = (u * tw0 + v * tw1 + tw2) if use_disk else tw2
-                    if not z > near32:
-                        continue
-                    alpha = opac * np.exp(-sigma)
-                    if alpha > alpha_max:
-                        alpha = alpha_max
-                    if alpha < alpha_min:
                         continue
                     t_next = trans[p] * (np.float32(1.0) - alpha)
                     if t_next < t_min:
@@ -211,6 +257,7 @@ def forward_kernel(geom, vals, boxes, offsets, lists, width, height, tiles_x, ne
                         n_done += 1
                         continue
                     w = alpha * trans[p]
+                    z = rz[px]
                     for ch in range(k_ch):
                         t_acc[p, ch] += w * vals[g, ch]
                     if t_last[p] == 0:
@@ -247,31 +294,38 @@ def forward_kernel(geom, vals, boxes, offsets, lists, width, height, tiles_x, ne
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
-def backward_kernel(geom, vals, boxes, offsets, lists, width, height, tiles_x, near, n_chunks,
+def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, near, n_chunks,
                     final_t, depth_ref, last, median_at, v_acc, v_z, v_z2, v_final_t, v_median):
     """Back-to-front gradients of every tile.
 
     Args:
-        as :func:`forward_kernel`, plus its saved final_t, depth_ref, last, median_at [H, W] and the upstream
-        gradients v_acc [H, W, K], v_z, v_z2, v_final_t, v_median [H, W].
+        as :func:`forward_kernel`, plus its saved final_t, depth_ref, last, median_at [H, W] and
+        the upstream gradients v_acc [H, W, K], v_z, v_z2, v_final_t, v_median [H, W].
     Returns:
         grads [n_chunks, N, 15 + K] float32 (sum over axis 0): d/d geom[:, :15] then d/d vals.
     """
-    n = geom.shape[0]
+    n = vals.shape[0]
     k_ch = vals.shape[1]
     n_cols = GEOM_GRAD_COLS + k_ch
     n_tiles = offsets.shape[0] - 1
     grads = np.zeros((n_chunks, n, n_cols), np.float32)
-    alpha_min = np.float32(ALPHA_MIN)
-    alpha_max = np.float32(ALPHA_MAX)
     near32 = np.float32(near)
     one = np.float32(1.0)
+    two = np.float32(2.0)
     for chunk in prange(n_chunks):
         gbuf = grads[chunk]
         trans = np.empty(TILE_PIXELS, np.float32)
         after = np.empty(TILE_PIXELS, np.float32)  # running sum over later splats of w * dot
         t_last = np.empty(TILE_PIXELS, np.int32)
         g_vals = np.empty(k_ch, np.float32)
+        xs = np.empty(TILE, np.float32)
+        ra = np.zeros(TILE, np.float32)
+        rz = np.zeros(TILE, np.float32)
+        ru = np.zeros(TILE, np.float32)
+        rv = np.zeros(TILE, np.float32)
+        rinv = np.zeros(TILE, np.float32)
+        rdisk = np.zeros(TILE, np.bool_)
+        rgauss = np.zeros(TILE, np.float32)
         for t in range(chunk, n_tiles, n_chunks):
             start = offsets[t]
             end = offsets[t + 1]
@@ -281,6 +335,8 @@ def backward_kernel(geom, vals, boxes, offsets, lists, width, height, tiles_x, n
             py0 = (t // tiles_x) * TILE
             px1 = min(px0 + TILE, width)
             py1 = min(py0 + TILE, height)
+            for i in range(TILE):
+                xs[i] = np.float32(px0 + i) + np.float32(0.5)
             max_last = 0
             for p in range(TILE_PIXELS):
                 t_last[p] = 0
@@ -295,27 +351,25 @@ def backward_kernel(geom, vals, boxes, offsets, lists, width, height, tiles_x, n
                         max_last = t_last[p]
             for j in range(max_last - 1, start - 1, -1):
                 g = lists[j]
-                x0 = max(boxes[g, 0], px0)
-                x1 = min(boxes[g, 2], px1)
-                y0 = max(boxes[g, 1], py0)
-                y1 = min(boxes[g, 3], py1)
-                a0 = geom[g, 0]
-                a1 = geom[g, 1]
-                a2 = geom[g, 2]
-                b0 = geom[g, 3]
-                b1 = geom[g, 4]
-                b2 = geom[g, 5]
-                d0 = geom[g, 6]
-                d1 = geom[g, 7]
-                d2 = geom[g, 8]
-                tw0 = geom[g, 9]
-                tw1 = geom[g, 10]
-                tw2 = geom[g, 11]
-                mx = geom[g, 12]
-                my = geom[g, 13]
-                opac = geom[g, 14]
-                level = geom[g, 15]
-                level2 = np.float32(2.0) * level
+                x0 = max(ebox[j, 0], px0)
+                x1 = min(ebox[j, 2], px1)
+                y0 = max(ebox[j, 1], py0)
+                y1 = min(ebox[j, 3], py1)
+                a0 = egeom[j, 0]
+                a1 = egeom[j, 1]
+                a2 = egeom[j, 2]
+                b0 = egeom[j, 3]
+                b1 = egeom[j, 4]
+                b2 = egeom[j, 5]
+                d0 = egeom[j, 6]
+                d1 = egeom[j, 7]
+                d2 = egeom[j, 8]
+                tw0 = egeom[j, 9]
+                tw1 = egeom[j, 10]
+                tw2 = egeom[j, 11]
+                mx = egeom[j, 12]
+                my = egeom[j, 13]
+                opac = egeom[j, 14]
                 # per-splat gradient sums over this tile
                 ga0 = np.float32(0.0)
                 ga1 = np.float32(0.0)
@@ -336,90 +390,90 @@ def backward_kernel(geom, vals, boxes, offsets, lists, width, height, tiles_x, n
                     g_vals[ch] = 0
                 touched = False
                 for py in range(y0, y1):
+                    row = (py - py0) * TILE
+                    # skip rows where this splat was blended into no pixel
+                    live = False
+                    for px in range(x0 - px0, x1 - px0):
+                        if j < t_last[row + px]:
+                            live = True
+                            break
+                    if not live:
+                        continue
                     y = np.float32(py) + np.float32(0.5)
                     e0 = a0 + d0 * y
                     e1 = a1 + d1 * y
                     e2 = a2 + d2 * y
                     dy = y - my
                     dy2 = dy * dy
-                    row = (py - py0) * TILE - px0
+                    for i in range(TILE):
+                        al, zz, uu, vv, iv, dk, gs = eval_lane(xs[i], e0, e1, e2, b0, b1, b2, mx, dy2, opac,
+                                                               tw0, tw1, tw2, near32)
+                        ra[i] = al
+                        rz[i] = zz
+                        ru[i] = uu
+                        rv[i] = vv
+                        rinv[i] = iv
+                        rdisk[i] = dk
+                        rgauss[i] = gs
                     rc0 = np.float32(0.0)
                     rc1 = np.float32(0.0)
                     rc2 = np.float32(0.0)
-                    for px in range(x0, x1):
+                    for px in range(x0 - px0, x1 - px0):
+                        alpha = ra[px]
+                        if alpha == np.float32(0.0):
+                            continue
                         p = row + px
                         if j >= t_last[p]:
                             continue
-                        x = np.float32(px) + np.float32(0.5)
-                        c0 = e0 + b0 * x
-                        c1 = e1 + b1 * x
-                        c2 = e2 + b2 * x
-                        dx = x - mx
-                        s_filt = dx * dx + dy2
-                        # division-free rejection: both sigma terms above the level (which carries slack)
-                        if s_filt > level and c0 * c0 + c1 * c1 > level2 * (c2 * c2):
-                            continue
-                        if c2 == 0:
-                            continue
-                        inv_c2 = np.float32(1.0) / c2
-                        u = c0 * inv_c2
-                        v = c1 * inv_c2
-                        s_disk = np.float32(0.5) * (u * u + v * v)
-                        use_disk = s_disk <= s_filt
-                        sigma = s_disk if use_disk else s_filt
-                        if sigma > level:
-                            continue
-                        z = (u * tw0 + v * tw1 + tw2) if use_disk else tw2
-                        if not z > near32:
-                            continue
-                        gauss = np.exp(-sigma)
-                        alpha = opac * gauss
-                        clamped = alpha > alpha_max
-                        if clamped:
-                            alpha = alpha_max
-                        if alpha < alpha_min:
-                            continue
+                        ix = px0 + px
+                        x = xs[px]
+                        z = rz[px]
+                        u = ru[px]
+                        v = rv[px]
                         touched = True
                         one_minus = one - alpha
                         t_before = trans[p] / one_minus
                         w = alpha * t_before
                         # dot of the upstream gradient with this splat's per-pixel values
-                        dz = z - depth_ref[py, px]
-                        dot = v_z[py, px] * z + v_z2[py, px] * dz * dz
+                        dz = z - depth_ref[py, ix]
+                        vz = v_z[py, ix]
+                        vz2 = v_z2[py, ix]
+                        dot = vz * z + vz2 * dz * dz
                         for ch in range(k_ch):
-                            vg = v_acc[py, px, ch]
+                            vg = v_acc[py, ix, ch]
                             dot += vg * vals[g, ch]
                             g_vals[ch] += w * vg
-                        g_alpha = t_before * dot - (after[p] + v_final_t[py, px] * final_t[py, px]) / one_minus
+                        g_alpha = t_before * dot - (after[p] + v_final_t[py, ix] * final_t[py, ix]) / one_minus
                         after[p] += w * dot
                         trans[p] = t_before
-                        g_z = w * (v_z[py, px] + np.float32(2.0) * dz * v_z2[py, px])
-                        if median_at[py, px] == j:
-                            g_z += v_median[py, px]
+                        g_z = w * (vz + two * dz * vz2)
+                        if median_at[py, ix] == j:
+                            g_z += v_median[py, ix]
                         g_sigma = np.float32(0.0)
-                        if not clamped:
-                            gop += g_alpha * gauss
+                        if not opac * rgauss[px] > np.float32(ALPHA_MAX):
+                            gop += g_alpha * rgauss[px]
                             g_sigma = -g_alpha * alpha
-                        gtw2 += g_z
-                        if use_disk:
+                        if rdisk[px]:
                             g_u = g_z * tw0 + g_sigma * u
                             g_v = g_z * tw1 + g_sigma * v
                             gtw0 += g_z * u
                             gtw1 += g_z * v
+                            gtw2 += g_z
+                            inv_c2 = rinv[px]
+                            g_c0 = g_u * inv_c2
+                            g_c1 = g_v * inv_c2
+                            g_c2 = -(g_u * u + g_v * v) * inv_c2
+                            rc0 += g_c0
+                            rc1 += g_c1
+                            rc2 += g_c2
+                            gb0 += g_c0 * x
+                            gb1 += g_c1 * x
+                            gb2 += g_c2 * x
                         else:
-                            g_u = np.float32(0.0)
-                            g_v = np.float32(0.0)
-                            gmx -= np.float32(2.0) * dx * g_sigma
-                            gmy -= np.float32(2.0) * dy * g_sigma
-                        g_c0 = g_u * inv_c2
-                        g_c1 = g_v * inv_c2
-                        g_c2 = -(g_u * u + g_v * v) * inv_c2
-                        rc0 += g_c0
-                        rc1 += g_c1
-                        rc2 += g_c2
-                        gb0 += g_c0 * x
-                        gb1 += g_c1 * x
-                        gb2 += g_c2 * x
+                            gtw2 += g_z
+                            dx = x - mx
+                            gmx -= two * dx * g_sigma
+                            gmy -= two * dy * g_sigma
                     ga0 += rc0
                     ga1 += rc1
                     ga2 += rc2
@@ -453,18 +507,17 @@ def backward_kernel(geom, vals, boxes, offsets, lists, width, height, tiles_x, n
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
-def trace_kernel(geom, boxes, offsets, lists, width, height, tiles_x, near, labels, num_labels):
-    """Per-tile sums of blending weights by label, as sparse triplets.
+def trace_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, labels):
+    """Per-tile sums of blending weights by label, as sparse triplets (a forward pass that
+    accumulates w_k(pixel) into (k, label(pixel)) instead of blending features).
 
     Args:
         as :func:`forward_kernel`; labels: [H, W] int64 (negative = ignored).
     Returns:
-        rows [E] int64 (splat), cols [E] int64 (label), weights [E] float32; the same (row, col)
-        may repeat across tiles (sum them).
+        rows [E'] int64 (splat), cols [E'] int64 (label), weights [E'] float32; the same
+        (row, col) may repeat across tiles (sum them).
     """
     n_tiles = offsets.shape[0] - 1
-    alpha_min = np.float32(ALPHA_MIN)
-    alpha_max = np.float32(ALPHA_MAX)
     t_min = np.float32(TRANSMITTANCE_MIN)
     near32 = np.float32(near)
     # distinct labels per tile
@@ -529,32 +582,33 @@ def trace_kernel(geom, boxes, offsets, lists, width, height, tiles_x, near, labe
         table = np.zeros((end - start, n_lab), np.float32)
         trans = np.ones(TILE_PIXELS, np.float32)
         done = np.zeros(TILE_PIXELS, np.bool_)
+        xs = np.empty(TILE, np.float32)
+        for i in range(TILE):
+            xs[i] = np.float32(px0 + i) + np.float32(0.5)
+        ra = np.zeros(TILE, np.float32)
         n_done = 0
         n_used = start
         for j in range(start, end):
-            g = lists[j]
             n_used = j + 1
-            x0 = max(boxes[g, 0], px0)
-            x1 = min(boxes[g, 2], px1)
-            y0 = max(boxes[g, 1], py0)
-            y1 = min(boxes[g, 3], py1)
-            a0 = geom[g, 0]
-            a1 = geom[g, 1]
-            a2 = geom[g, 2]
-            b0 = geom[g, 3]
-            b1 = geom[g, 4]
-            b2 = geom[g, 5]
-            d0 = geom[g, 6]
-            d1 = geom[g, 7]
-            d2 = geom[g, 8]
-            tw0 = geom[g, 9]
-            tw1 = geom[g, 10]
-            tw2 = geom[g, 11]
-            mx = geom[g, 12]
-            my = geom[g, 13]
-            opac = geom[g, 14]
-            level = geom[g, 15]
-            level2 = np.float32(2.0) * level
+            x0 = max(ebox[j, 0], px0)
+            x1 = min(ebox[j, 2], px1)
+            y0 = max(ebox[j, 1], py0)
+            y1 = min(ebox[j, 3], py1)
+            a0 = egeom[j, 0]
+            a1 = egeom[j, 1]
+            a2 = egeom[j, 2]
+            b0 = egeom[j, 3]
+            b1 = egeom[j, 4]
+            b2 = egeom[j, 5]
+            d0 = egeom[j, 6]
+            d1 = egeom[j, 7]
+            d2 = egeom[j, 8]
+            tw0 = egeom[j, 9]
+            tw1 = egeom[j, 10]
+            tw2 = egeom[j, 11]
+            mx = egeom[j, 12]
+            my = egeom[j, 13]
+            opac = egeom[j, 14]
             for py in range(y0, y1):
                 y = np.float32(py) + np.float32(0.5)
                 e0 = a0 + d0 * y
@@ -562,37 +616,17 @@ def trace_kernel(geom, boxes, offsets, lists, width, height, tiles_x, near, labe
                 e2 = a2 + d2 * y
                 dy = y - my
                 dy2 = dy * dy
-                row = (py - py0) * TILE - px0
-                for px in range(x0, x1):
+                for i in range(TILE):
+                    al, _, _, _, _, _, _ = eval_lane(xs[i], e0, e1, e2, b0, b1, b2, mx, dy2, opac,
+                                                    tw0, tw1, tw2, near32)
+                    ra[i] = al
+                row = (py - py0) * TILE
+                for px in range(x0 - px0, x1 - px0):
+                    alpha = ra[px]
+                    if alpha == np.float32(0.0):
+                        continue
                     p = row + px
                     if done[p]:
-                        continue
-                    x = np.float32(px) + np.float32(0.5)
-                    c0 = e0 + b0 * x
-                    c1 = e1 + b1 * x
-                    c2 = e2 + b2 * x
-                    dx = x - mx
-                    s_filt = dx * dx + dy2
-                    # division-free rejection: both sigma terms above the level (which carries slack)
-                    if s_filt > level and c0 * c0 + c1 * c1 > level2 * (c2 * c2):
-                        continue
-                    if c2 == 0:
-                        continue
-                    inv_c2 = np.float32(1.0) / c2
-                    u = c0 * inv_c2
-                    v = c1 * inv_c2
-                    s_disk = np.float32(0.5) * (u * u + v * v)
-                    use_disk = s_disk <= s_filt
-                    sigma = s_disk if use_disk else s_filt
-                    if sigma > level:
-                        continue
-                    z = (u * tw0 + v * tw1 + tw2) if use_disk else tw2
-                    if not z > near32:
-                        continue
-                    alpha = opac * np.exp(-sigma)
-                    if alpha > alpha_max:
-                        alpha = alpha_max
-                    if alpha < alpha_min:
                         continue
                     t_next = trans[p] * (np.float32(1.0) - alpha)
                     if t_next < t_min:
@@ -652,7 +686,12 @@ class Binning:
         depth = proj.depths.detach().cpu().numpy()[idx]
         self.order = idx[np.argsort(depth, kind="stable")].astype(np.int64)
         self.offsets, self.lists = bin_tiles(self.boxes, self.order, self.tiles_x, self.tiles_y)
-        self.pairs = None  # [tiles] pixel-splat pairs visited by the last forward
+        self.entry_boxes = np.ascontiguousarray(self.boxes[self.lists].astype(np.int32))  # [E, 4]
+        self.pairs = None  # [tiles] pixel-splat pairs evaluated by the last forward
+
+    def entry_geometry(self, geom: np.ndarray) -> np.ndarray:
+        """[E, 16] ``geom`` rows in tile-list order (contiguous reads in the kernels)."""
+        return np.ascontiguousarray(geom[self.lists])
 
 
 def pack_geometry(proj: Projected) -> Tensor:
@@ -678,14 +717,15 @@ class _Rasterize(torch.autograd.Function):
     def forward(ctx, geom15: Tensor, vals: Tensor, binning: Binning, near: float):
         geom = _geom_array(geom15)
         vals_np = _f32(vals)
+        egeom = binning.entry_geometry(geom)
         acc, acc_z, acc_z2, final_t, median_z, depth_ref, last, median_at, pairs = forward_kernel(
-            geom, vals_np, binning.boxes, binning.offsets, binning.lists, binning.width, binning.height,
-            binning.tiles_x, float(near))
+            egeom, binning.entry_boxes, binning.lists, vals_np, binning.offsets, binning.width,
+            binning.height, binning.tiles_x, float(near))
         binning.pairs = pairs
         ctx.binning = binning
         ctx.near = near
         ctx.in_dtype = (geom15.dtype, vals.dtype, geom15.device)
-        ctx.saved = (geom, vals_np, final_t, depth_ref, last, median_at)
+        ctx.saved = (egeom, vals_np, final_t, depth_ref, last, median_at)
         dev, dt = vals.device, vals.dtype
         outs = [torch.from_numpy(a).to(device=dev, dtype=dt) for a in (acc, acc_z, acc_z2, final_t, median_z)]
         ref = torch.from_numpy(depth_ref).to(device=dev, dtype=dt)
@@ -695,7 +735,7 @@ class _Rasterize(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_acc, v_z, v_z2, v_final_t, v_median, v_ref):
         b = ctx.binning
-        geom, vals_np, final_t, depth_ref, last, median_at = ctx.saved
+        egeom, vals_np, final_t, depth_ref, last, median_at = ctx.saved
         h, w, k = b.height, b.width, vals_np.shape[1]
 
         def arr(t, shape):
@@ -704,7 +744,7 @@ class _Rasterize(torch.autograd.Function):
             return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
 
         n_chunks = max(1, numba.get_num_threads())
-        grads = backward_kernel(geom, vals_np, b.boxes, b.offsets, b.lists, b.width, b.height, b.tiles_x,
+        grads = backward_kernel(egeom, b.entry_boxes, b.lists, vals_np, b.offsets, b.width, b.height, b.tiles_x,
                                 float(ctx.near), n_chunks, final_t, depth_ref, last, median_at,
                                 arr(v_acc, (h, w, k)), arr(v_z, (h, w)), arr(v_z2, (h, w)),
                                 arr(v_final_t, (h, w)), arr(v_median, (h, w)))
@@ -749,8 +789,8 @@ def trace_weights(proj: Projected, width: int, height: int, labels: Tensor, num_
     binning = Binning(proj, width, height)
     geom = _geom_array(pack_geometry(proj))
     lab = np.ascontiguousarray(labels.detach().cpu().numpy().astype(np.int64))
-    rows, cols, w = trace_kernel(geom, binning.boxes, binning.offsets, binning.lists, binning.width,
-                                 binning.height, binning.tiles_x, float(near), lab, int(num_labels))
+    rows, cols, w = trace_kernel(binning.entry_geometry(geom), binning.entry_boxes, binning.lists, binning.offsets,
+                                 binning.width, binning.height, binning.tiles_x, float(near), lab)
     n = proj.depths.shape[0]
     dev = proj.depths.device
     idx = torch.from_numpy(np.stack([rows, cols])) if rows.size else torch.zeros(2, 0, dtype=torch.int64)
