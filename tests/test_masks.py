@@ -477,3 +477,5 @@ class TestSam:
                                   np.array([0.95, 0.99, 0.92], np.float32), SamParams())
         assert len(out) == 2
         np.testing.assert_allclose(scores, [0.8, 0.7])
+        empty, empty_scores = postprocess(masks[:0], np.zeros(0, np.float32), np.zeros(0, np.float32), SamParams())
+        assert empty.shape == (0, 20, 20) and empty_scores.shape == (0,)

@@ -12,7 +12,9 @@ Definition used here (one choice made where the paper is silent):
 * Connected regions (4-neighbourhood) of equal signature are the raw pieces.  A piece smaller than
   ``min_patch_pixels`` (boundary slivers of slightly misaligned masks) is absorbed into the largest
   (by area, ties to the lower piece number) 4-adjacent piece that shares at least one covering mask
-  with it, i.e. lies inside a common coarser mask; a tiny piece with no such neighbour stays.
+  with it, i.e. lies inside a common coarser mask, provided that neighbour is bigger than the
+  tiny piece itself (same order); otherwise the tiny piece stays (and may receive smaller ones).
+  Pieces are numbered in raster order of their first pixel.
   Uncovered pixels are never absorbed and never absorb.
 * ``split_disconnected=False`` (default): all pieces that end with the same signature form ONE
   patch, even when disconnected (SAM put them in exactly the same masks, e.g. an object cut in
@@ -301,8 +303,13 @@ def masks_to_patches(
                 order = np.lexsort((-neighbour, piece_area[neighbour], small))
                 small, neighbour = small[order], neighbour[order]
                 last = np.r_[small[1:] != small[:-1], True]
-                parent[small[last]] = neighbour[last]
-                # targets strictly increase in (area, -number), so pointer jumping terminates
+                small, neighbour = small[last], neighbour[last]
+                # only into a bigger piece: (area, -number) strictly increases along every chain,
+                # so there are no cycles and pointer jumping terminates
+                bigger = (piece_area[neighbour] > piece_area[small]) | (
+                    (piece_area[neighbour] == piece_area[small]) & (neighbour < small)
+                )
+                parent[small[bigger]] = neighbour[bigger]
                 while True:
                     jumped = parent[parent]
                     if np.array_equal(jumped, parent):
@@ -330,7 +337,7 @@ def masks_to_patches(
     relabel[values] = np.arange(1, len(values) + 1)
     patch_map = relabel[key].astype(np.uint16)
 
-    mask_areas = masks.reshape(M, -1).sum(axis=1).astype(np.int64)
+    mask_areas = masks.reshape(M, H * W).sum(axis=1).astype(np.int64)
     num_patches = len(values)
     patch_areas = np.bincount(patch_map.ravel(), minlength=num_patches + 1)[1:].astype(np.int64)
     patch_bits = bits[key_signature[values]]  # [P, B]
@@ -395,7 +402,7 @@ def _masks_to_patches_reference(
             if set(piece_sig[p]) & set(piece_sig[n]):
                 if best is None or piece_area[n] > piece_area[best]:
                     best = n
-        if best is not None:
+        if best is not None and (piece_area[best], -best) > (piece_area[p], -p):
             target[p] = best
 
     def root_of(p: int) -> int:
@@ -491,7 +498,7 @@ def mask_overlay(image: np.ndarray, masks: np.ndarray, alpha: float = 0.55) -> n
     """
     out = image.astype(np.float64) / 255.0
     colours = _colour_table(len(masks), seed=1)[1:]
-    areas = masks.reshape(len(masks), -1).sum(axis=1)
+    areas = masks.sum(axis=(1, 2))
     for m in np.argsort(-areas, kind="stable"):  # largest first, so finer masks stay visible
         out[masks[m]] = (1 - alpha) * out[masks[m]] + alpha * colours[m]
     return out

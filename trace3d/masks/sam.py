@@ -95,7 +95,7 @@ def filter_stability(stability: np.ndarray, threshold: float) -> np.ndarray:
 
 def filter_small(masks: np.ndarray, max_small_pixels: int) -> np.ndarray:
     """[M] bool keep-flags: more than ``max_small_pixels`` pixels (masks [M, H, W])."""
-    return masks.reshape(len(masks), -1).sum(axis=1) > max_small_pixels
+    return masks.sum(axis=(1, 2)) > max_small_pixels
 
 
 def nest_covered_masks(masks: np.ndarray, coverage: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
@@ -110,7 +110,9 @@ def nest_covered_masks(masks: np.ndarray, coverage: float = 0.9) -> tuple[np.nda
         nested masks [M, H, W] bool (ascending original area) and order [M] (indices into the input).
     """
     M = len(masks)
-    order = np.argsort(masks.reshape(M, -1).sum(axis=1), kind="stable")
+    if M == 0:
+        return masks.copy(), np.zeros(0, dtype=np.int64)
+    order = np.argsort(masks.sum(axis=(1, 2)), kind="stable")
     out = masks[order].copy()
     flat = out.reshape(M, -1)
     for m in range(M - 1):

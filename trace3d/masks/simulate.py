@@ -385,7 +385,7 @@ def _simulate(
         scores = (1.0 - inc * rng.uniform(0.0, 0.15, size=len(masks))).astype(np.float32)
     else:
         scores = np.ones(len(masks), dtype=np.float32)
-    order = np.argsort(-masks.reshape(len(masks), -1).sum(axis=1), kind="stable")
+    order = np.argsort(-masks.sum(axis=(1, 2)), kind="stable")
     return masks[order], scores[order]
 
 
