@@ -253,7 +253,7 @@ def test_registers_every_view_within_two_percent(room, room_sfm):
     assert report["missing"] == [] and report["filled_from_scene"] == []
     alignment = report["alignment"]
     assert alignment["applied"]
-    assert alignment["method"] == "poses"
+    assert alignment["method"] == "poses" and alignment["suspect_frames"] == []
     assert alignment["center_error_rel_max"] < 0.02
     assert alignment["rotation_error_deg_max"] < 1.0
     assert alignment["centers_only"]["center_error_rel_max"] < 0.02  # plain Umeyama on the centres
