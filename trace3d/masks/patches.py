@@ -213,23 +213,36 @@ def _pixel_signatures(masks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Args:
         masks: [M, H, W] bool.
     Returns:
-        signature_map [H, W] int64 (0 = covered by no mask) and signature_bits [S, B] uint8
-        (row s = packed membership bits of signature s, row 0 all zero; B = ceil(M / 8)).
+        signature_map [H, W] int64 (0 = covered by no mask) and signature_words [S, B] uint64
+        (row s = membership bit-vector of signature s, bit k of word k // 64 for mask k; row 0 all
+        zero; B = ceil(M / 64)).
     """
     M, H, W = masks.shape
-    if M == 0:
-        return np.zeros((H, W), dtype=np.int64), np.zeros((1, 0), dtype=np.uint8)
-    packed = np.packbits(masks.reshape(M, H * W), axis=0)  # [B, H*W]
-    num_bytes = packed.shape[0]
-    rows = np.ascontiguousarray(packed.T)  # [H*W, B]
-    keys = rows.view(np.dtype((np.void, num_bytes))).ravel()
-    unique, inverse = np.unique(keys, return_inverse=True)
-    bits = unique.view(np.uint8).reshape(-1, num_bytes)
+    num_words = max((M + 63) // 64, 1)
+    # byte b of a pixel holds masks 8b..8b+7; 8 little-endian bytes make one uint64 word
+    planes = np.zeros((8 * num_words, H * W), dtype=np.uint8)
+    flat = masks.reshape(M, H * W).view(np.uint8)
+    for k in range(M):
+        planes[k // 8] |= flat[k] << np.uint8(k % 8)
+    words = np.ascontiguousarray(planes.T).view("<u8").astype(np.uint64)  # [H*W, num_words]
+    if num_words == 1:
+        unique, inverse = np.unique(words[:, 0], return_inverse=True)
+        unique = unique[:, None]
+    else:
+        keys = words.view(np.dtype((np.void, 8 * num_words))).ravel()
+        unique, inverse = np.unique(keys, return_inverse=True)
+        unique = unique.view(np.uint64).reshape(-1, num_words)
     inverse = inverse.reshape(H, W).astype(np.int64)
-    if bits[0].any():  # no uncovered pixel: the all-zero signature is absent, make room for it
-        bits = np.concatenate([np.zeros((1, num_bytes), dtype=np.uint8), bits], axis=0)
+    if unique[0].any():  # no uncovered pixel: the all-zero signature is absent, make room for it
+        unique = np.concatenate([np.zeros((1, num_words), dtype=np.uint64), unique], axis=0)
         inverse += 1
-    return inverse, bits
+    return inverse, unique
+
+
+def _unpack_words(words: np.ndarray, count: int) -> np.ndarray:
+    """[S, B] uint64 bit-vectors -> [S, count] bool."""
+    k = np.arange(count)
+    return ((words[:, k // 64] >> (k % 64).astype(np.uint64)) & np.uint64(1)).astype(bool)
 
 
 def _adjacent_pairs(pieces: np.ndarray) -> np.ndarray:
@@ -341,7 +354,7 @@ def masks_to_patches(
     num_patches = len(values)
     patch_areas = np.bincount(patch_map.ravel(), minlength=num_patches + 1)[1:].astype(np.int64)
     patch_bits = bits[key_signature[values]]  # [P, B]
-    member = np.unpackbits(patch_bits, axis=1, count=M).astype(bool) if M else np.zeros((num_patches, 0), bool)
+    member = _unpack_words(patch_bits, M)  # [P, M]
     coarse_to_fine = np.lexsort((np.arange(M), -mask_areas))  # mask indices, largest first
     patch_masks = [[int(m) for m in coarse_to_fine if row[m]] for row in member]
     hierarchy = PatchHierarchy(patch_masks, patch_areas, mask_areas, scores.copy(), frame)
