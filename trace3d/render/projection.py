@@ -192,14 +192,18 @@ def footprint_boxes(ray_t: Tensor, means2d: Tensor, opacities: Tensor, in_front:
         level = np.where(ok, np.log(np.maximum(op, 1e-30) * 255.0), 0.0)
         r2 = 2.0 * level
         diag = np.stack([r2, r2, -np.ones_like(r2)], axis=-1)  # [N, 3]
-        dual = np.einsum("nij,nj,nkj->nik", T, diag, T)  # [N, 3, 3]
-        c22 = dual[:, 2, 2]
+        t_diag = T * diag[:, None, :]  # [N, 3, 3]
+
+        def dual(i: int, k: int) -> np.ndarray:  # entry (i, k) of T diag T^T, [N]
+            return (t_diag[:, i, :] * T[:, k, :]).sum(-1)
+
+        c22 = dual(2, 2)
         ellipse = c22 < 0
         lo = np.empty((n, 2))
         hi = np.empty((n, 2))
         for axis in range(2):
-            c02 = dual[:, axis, 2]
-            c00 = dual[:, axis, axis]
+            c02 = dual(axis, 2)
+            c00 = dual(axis, axis)
             disc = np.sqrt(np.maximum(c02 * c02 - c00 * c22, 0.0))
             a = (c02 + disc) / c22
             b = (c02 - disc) / c22
