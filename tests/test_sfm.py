@@ -372,14 +372,34 @@ def test_dataset_mode_points_from_depth(room, tmp_path):
     assert report["mode"] == "dataset" and report["num_points"] == len(xyz)
 
 
-def test_dataset_mode_without_depth_writes_no_points(room, tmp_path):
-    scene = subset_scene(room, tmp_path / "scene", [c.name for c in room.cameras[:3]])
+def test_dataset_mode_triangulates_without_depth(room, tmp_path):
+    names = [c.name for c in room.cameras[:8]]
+    scene = subset_scene(room, tmp_path / "scene", names)  # no depth/ folder
     out = tmp_path / "poses"
     run_poses(scene, out, {"mode": "dataset"})
+    report = load_report(out)
+    assert report["points_source"] == "triangulate" and report["num_points"] >= 100
+    assert report["mean_reprojection_error_px"] < 1.0
+    xyz, _ = read_points_ply(out / "points3D.ply")
+    assert len(xyz) == report["num_points"]
+    assert depth_consistency([room.camera(n) for n in names], room, xyz) < 0.02
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    assert rec.num_points3D() == len(xyz) and rec.compute_mean_track_length() >= 2.0
+    for image in rec.images.values():  # the scene's poses are kept, not refined
+        np.testing.assert_allclose(image.cam_from_world().matrix(), scene.camera(image.name[:-4]).world_to_camera[:3],
+                                   atol=1e-9)  # fmt: skip
+
+
+def test_dataset_mode_without_points(room, tmp_path):
+    scene = subset_scene(room, tmp_path / "scene", [c.name for c in room.cameras[:3]])
+    out = tmp_path / "poses"
+    run_poses(scene, out, {"mode": "dataset", "dataset_points": "none"})
     assert not (out / "points3D.ply").exists()
     report = load_report(out)
-    assert report["num_points"] == 0 and "no depth/ folder" in report["note"]
+    assert report["num_points"] == 0 and "no points3D.ply was written" in report["note"]
     assert len(Scene.read(out, check_files=False).cameras) == 3
+    with pytest.raises(ConfigError, match="no depth/ folder"):
+        run_poses(scene, tmp_path / "poses2", {"mode": "dataset", "dataset_points": "depth"})
 
 
 def test_params_are_checked(room, tmp_path):

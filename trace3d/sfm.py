@@ -34,10 +34,12 @@ written with the scene's reference pose and listed under ``filled_from_scene`` i
 steps need every frame); without reference poses they cannot be placed and are left out of
 cameras.json, listed under ``missing``.
 
-``mode: dataset`` copies the scene's cameras and, when the scene has ``depth/``, back-projects a
-random subsample of depth pixels of every frame into ``points3D.ply``; without depth no
-``points3D.ply`` is written (so the trainer's ``init: auto`` falls back to depth / random) and
-sfm.json says so in its ``note``.  The COLMAP model holds the cameras and the track-less points.
+``mode: dataset`` copies the scene's cameras.  Its points (``dataset_points``) are back-projected
+from a random subsample of depth pixels when the scene has ``depth/`` (the COLMAP model then holds
+the cameras and track-less points), or else triangulated from SIFT matches with the scene's poses
+and intrinsics held fixed (COLMAP's point triangulator; the model holds the tracks).  When no point
+results, no ``points3D.ply`` is written (so the trainer's ``init: auto`` falls back to depth /
+random) and sfm.json says why in its ``note``.
 """
 
 from __future__ import annotations
@@ -98,6 +100,10 @@ class PosesParams:
         align_method: "poses" (rotation from the camera orientations, scale and translation from
             the centres) or "centers" (Umeyama on the centres alone); see
             :func:`trace3d.pointcloud.align_cameras`.
+        dataset_points: (dataset mode) where points3D.ply comes from: "depth" (back-project the
+            scene's depth maps), "triangulate" (SIFT matches triangulated with the scene's poses and
+            intrinsics, poses kept fixed), "none"; "auto" = depth when the scene has depth/, else
+            triangulate.
         depth_points: (dataset mode) total number of depth pixels back-projected into points.
         num_threads: CPU threads for pycolmap (-1 = all cores).
         seed: seed of pycolmap's random number generator (RANSAC, mapping) and of point sampling.
@@ -122,6 +128,7 @@ class PosesParams:
     min_num_points: int = 100
     align_to_scene: bool | None = None
     align_method: Literal["poses", "centers"] = "poses"
+    dataset_points: Literal["auto", "depth", "triangulate", "none"] = "auto"
     depth_points: int = 100_000
     num_threads: int = -1
     seed: int = 0
@@ -191,31 +198,100 @@ def camera_diameter(centres: np.ndarray) -> float:
 
 def _run_dataset(scene: Scene, out_dir: Path, p: PosesParams) -> dict:
     cameras = [dataclasses.replace(c) for c in scene.cameras]
+    for cam in cameras:
+        _check_pinhole(cam, str(scene.root / "cameras.json"))
     write_cameras(out_dir, cameras)
+    source = p.dataset_points
+    if source == "auto":
+        source = "depth" if scene.has_depth else "triangulate"
     xyz, rgb = np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint8)
-    if scene.has_depth and p.depth_points > 0:
-        xyz, rgb = points_from_depth(scene, p.depth_points, p.seed)
+    report: dict = {"mode": "dataset", "images_registered": len(cameras), "images_total": len(scene.cameras),
+                    "missing": [], "frame": "scene", "points_source": source}  # fmt: skip
+    if source == "depth":
+        if not scene.has_depth:
+            raise ConfigError(f"{scene.root}: dataset_points is 'depth' but the scene has no depth/ folder.")
+        if p.depth_points > 0:
+            xyz, rgb = points_from_depth(scene, p.depth_points, p.seed)
+        write_colmap_model(out_dir / "sparse" / "0", cameras, xyz, rgb)
+        reason = "the depth maps have no valid pixel" if p.depth_points else "depth_points is 0"
+        note = f"{len(xyz)} points back-projected from the scene's depth maps" if len(xyz) else reason
+    elif source == "triangulate":
+        rec, stats = _triangulate_known_poses(scene, p)
+        report.update(stats)
+        point_ids = sorted(rec.points3D)
+        xyz = np.array([rec.points3D[i].xyz for i in point_ids], dtype=np.float64).reshape(-1, 3)
+        rgb = np.array([rec.points3D[i].color for i in point_ids], dtype=np.uint8).reshape(-1, 3)
+        (out_dir / "sparse" / "0").mkdir(parents=True, exist_ok=True)
+        rec.write_binary(str(out_dir / "sparse" / "0"))
+        note = (f"{len(xyz)} points triangulated from SIFT matches with the scene's poses" if len(xyz)
+                else "triangulation with the scene's poses found no points (too few verified matches)")
+    else:
+        write_colmap_model(out_dir / "sparse" / "0", cameras, xyz, rgb)
+        note = "dataset_points is 'none'"
     if len(xyz):
-        note = f"{len(xyz)} points back-projected from the scene's depth maps into points3D.ply"
         write_points_ply(out_dir / "points3D.ply", xyz, rgb)
     else:
-        reason = "the scene has no depth/ folder" if not scene.has_depth else (
-            "depth_points is 0" if p.depth_points == 0 else "the depth maps have no valid pixel")
-        note = (f"no points3D.ply was written because {reason}; the trainer must initialise the Gaussians "
-                "another way (depth or random in the scene bounds)")
+        note = (f"no points3D.ply was written: {note}; the trainer must initialise the Gaussians another way "
+                "(depth or random in the scene bounds)")
         log.warning("poses (dataset): %s", note)
-    write_colmap_model(out_dir / "sparse" / "0", cameras, xyz, rgb)
     log.info("poses (dataset): %d cameras copied; %s", len(cameras), note)
-    return {
-        "mode": "dataset",
-        "images_registered": len(cameras),
-        "images_total": len(scene.cameras),
-        "missing": [],
-        "num_points": int(len(xyz)),
-        "points_file": "points3D.ply" if len(xyz) else None,
-        "note": note,
-        "frame": "scene",
+    report.update({"num_points": int(len(xyz)), "points_file": "points3D.ply" if len(xyz) else None, "note": note})
+    return report
+
+
+def _triangulate_known_poses(scene: Scene, p: PosesParams):
+    """Triangulate SIFT matches with the scene's own cameras (poses and intrinsics fixed).
+
+    Returns the pycolmap Reconstruction (cameras, frames, images, points with tracks) and statistics.
+    """
+    import pycolmap
+
+    _configure_colmap_log(p.colmap_log_level)
+    pycolmap.set_random_seed(p.seed)
+    single = _decide_single_camera(scene, p.single_camera, True)
+    timings: dict[str, float] = {}
+    with tempfile.TemporaryDirectory(prefix="trace3d-tri-") as work:
+        database = Path(work) / "database.db"
+        num_keypoints, num_verified_pairs = _extract_and_match(scene, p, database, single, True, timings)
+        t0 = time.perf_counter()
+        with pycolmap.Database.open(str(database)) as db:
+            db_cameras, rigs = db.read_all_cameras(), db.read_all_rigs()
+            frames, images = db.read_all_frames(), db.read_all_images()
+        rec = pycolmap.Reconstruction()
+        for camera in db_cameras:  # _prepare_database installed the scene's K
+            rec.add_camera(camera)
+        for rig in rigs:
+            rec.add_rig(rig)
+        image_by_id = {image.image_id: image for image in images}
+        for frame in frames:
+            data_ids = list(frame.data_ids)
+            if len(data_ids) != 1:
+                raise Trace3DError(f"{scene.root}: pycolmap made a frame with {len(data_ids)} images; expected 1.")
+            image = image_by_id[data_ids[0].id]
+            frame.rig_from_world = pycolmap.Rigid3d(scene.camera(image.name[: -len(".png")]).world_to_camera[:3, :4])
+            rec.add_frame(frame)
+            image.frame_id = frame.frame_id
+            rec.add_image(image)
+        for frame in frames:
+            rec.register_frame(frame.frame_id)
+        log.info("poses (dataset): triangulating %d verified image pairs with the scene's poses ...", num_verified_pairs)
+        out = Path(work) / "triangulated"
+        out.mkdir()
+        options = _mapping_options(p, len(scene.cameras))
+        rec = pycolmap.triangulate_points(
+            rec, str(database), str(scene.root / "images"), str(out), clear_points=True, options=options,
+            refine_intrinsics=False,
+        )  # fmt: skip
+        timings["triangulate_s"] = time.perf_counter() - t0
+    stats = {
+        "num_verified_pairs": num_verified_pairs,
+        "mean_keypoints_per_image": num_keypoints / len(scene.cameras),
+        "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()),
+        "mean_track_length": float(rec.compute_mean_track_length()),
+        "single_camera": single,
+        "timings": {k: round(v, 3) for k, v in timings.items()},
     }
+    return rec, stats
 
 
 def points_from_depth(scene: Scene, total: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -294,22 +370,78 @@ def _configure_colmap_log(level: str) -> None:
     pycolmap.logging.minloglevel = {"info": 0, "warning": 1, "error": 2}[level]
 
 
-def _decide_single_camera(scene: Scene, p: PosesParams) -> bool:
+def _decide_single_camera(scene: Scene, single_camera: bool | None, known_intrinsics: bool) -> bool:
     sizes = {(c.width, c.height) for c in scene.cameras}
     same_k = all(np.allclose(c.K, scene.cameras[0].K, rtol=0, atol=1e-6) for c in scene.cameras)
-    if p.single_camera is None:
-        return len(sizes) == 1 and (same_k or not p.known_intrinsics)
-    if p.single_camera and len(sizes) > 1:
+    if single_camera is None:
+        return len(sizes) == 1 and (same_k or not known_intrinsics)
+    if single_camera and len(sizes) > 1:
         raise ConfigError(
             f"{scene.root / 'cameras.json'}: single_camera is true but the frames have {len(sizes)} "
             f"different image sizes {sorted(sizes)}."
         )
-    if p.single_camera and p.known_intrinsics and not same_k:
+    if single_camera and known_intrinsics and not same_k:
         raise ConfigError(
             f"{scene.root / 'cameras.json'}: single_camera and known_intrinsics are true but the frames' "
             "K differ; set single_camera to false or known_intrinsics to false."
         )
-    return bool(p.single_camera)
+    return bool(single_camera)
+
+
+def _extract_and_match(scene: Scene, p: PosesParams, database: Path, single: bool, known_intrinsics: bool,
+                       timings: dict) -> tuple[int, int]:
+    """SIFT extraction and matching of every scene frame into ``database``.
+
+    Returns the total number of keypoints and the number of image pairs that passed geometric
+    verification; adds ``extract_s`` and ``match_s`` to ``timings``.
+    """
+    import pycolmap
+
+    image_dir = scene.root / "images"
+    t0 = time.perf_counter()
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = p.num_threads
+    extraction.max_image_size = p.max_image_size
+    extraction.sift.max_num_features = p.max_num_features
+    extraction.sift.peak_threshold = p.sift_peak_threshold
+    extraction.sift.domain_size_pooling = p.domain_size_pooling
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "PINHOLE"
+    log.info("poses: extracting SIFT features of %d frames ...", len(scene.cameras))
+    pycolmap.extract_features(
+        str(database), str(image_dir), image_names=[f"{c.name}.png" for c in scene.cameras],
+        camera_mode=pycolmap.CameraMode.SINGLE if single else pycolmap.CameraMode.PER_IMAGE,
+        camera_model="PINHOLE", reader_options=reader, extraction_options=extraction,
+        device=pycolmap.Device.cpu,
+    )  # fmt: skip
+    num_keypoints = _prepare_database(database, scene, known_intrinsics)
+    timings["extract_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = p.num_threads
+    matching.guided_matching = p.guided_matching
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.min_num_inliers = p.min_num_matches
+    verification.ransac.random_seed = p.seed
+    log.info("poses: %s matching ...", p.matcher)
+    if p.matcher == "exhaustive":
+        pycolmap.match_exhaustive(
+            str(database), matching_options=matching, verification_options=verification,
+            device=pycolmap.Device.cpu,
+        )  # fmt: skip
+    else:
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = p.sequential_overlap
+        pairing.quadratic_overlap = p.sequential_quadratic_overlap
+        pairing.num_threads = p.num_threads
+        pycolmap.match_sequential(
+            str(database), matching_options=matching, pairing_options=pairing,
+            verification_options=verification, device=pycolmap.Device.cpu,
+        )  # fmt: skip
+    num_verified_pairs = _count_verified_pairs(database, p.min_num_matches)
+    timings["match_s"] = time.perf_counter() - t0
+    return num_keypoints, num_verified_pairs
 
 
 def _run_colmap(scene: Scene, out_dir: Path, p: PosesParams) -> dict:
@@ -318,8 +450,7 @@ def _run_colmap(scene: Scene, out_dir: Path, p: PosesParams) -> dict:
     _configure_colmap_log(p.colmap_log_level)
     pycolmap.set_random_seed(p.seed)
     names = [c.name for c in scene.cameras]
-    image_names = [f"{n}.png" for n in names]
-    single = _decide_single_camera(scene, p)
+    single = _decide_single_camera(scene, p.single_camera, p.known_intrinsics)
     if p.known_intrinsics:
         for cam in scene.cameras:
             _check_pinhole(cam, str(scene.root / "cameras.json"))
@@ -332,56 +463,13 @@ def _run_colmap(scene: Scene, out_dir: Path, p: PosesParams) -> dict:
 
     with tempfile.TemporaryDirectory(prefix="trace3d-sfm-") as work:
         database = Path(work) / "database.db"
-        image_dir = scene.root / "images"
-
-        t0 = time.perf_counter()
-        extraction = pycolmap.FeatureExtractionOptions()
-        extraction.num_threads = p.num_threads
-        extraction.max_image_size = p.max_image_size
-        extraction.sift.max_num_features = p.max_num_features
-        extraction.sift.peak_threshold = p.sift_peak_threshold
-        extraction.sift.domain_size_pooling = p.domain_size_pooling
-        reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = "PINHOLE"
-        log.info("poses (colmap): extracting SIFT features ...")
-        pycolmap.extract_features(
-            str(database), str(image_dir), image_names=image_names,
-            camera_mode=pycolmap.CameraMode.SINGLE if single else pycolmap.CameraMode.PER_IMAGE,
-            camera_model="PINHOLE", reader_options=reader, extraction_options=extraction,
-            device=pycolmap.Device.cpu,
-        )  # fmt: skip
-        num_keypoints = _prepare_database(database, scene, p)
-        timings["extract_s"] = time.perf_counter() - t0
-
-        t0 = time.perf_counter()
-        matching = pycolmap.FeatureMatchingOptions()
-        matching.num_threads = p.num_threads
-        matching.guided_matching = p.guided_matching
-        verification = pycolmap.TwoViewGeometryOptions()
-        verification.min_num_inliers = p.min_num_matches
-        verification.ransac.random_seed = p.seed
-        log.info("poses (colmap): %s matching ...", p.matcher)
-        if p.matcher == "exhaustive":
-            pycolmap.match_exhaustive(
-                str(database), matching_options=matching, verification_options=verification,
-                device=pycolmap.Device.cpu,
-            )  # fmt: skip
-        else:
-            pairing = pycolmap.SequentialPairingOptions()
-            pairing.overlap = p.sequential_overlap
-            pairing.quadratic_overlap = p.sequential_quadratic_overlap
-            pairing.num_threads = p.num_threads
-            pycolmap.match_sequential(
-                str(database), matching_options=matching, pairing_options=pairing,
-                verification_options=verification, device=pycolmap.Device.cpu,
-            )  # fmt: skip
-        num_verified_pairs = _count_verified_pairs(database, p.min_num_matches)
-        timings["match_s"] = time.perf_counter() - t0
-
+        num_keypoints, num_verified_pairs = _extract_and_match(scene, p, database, single, p.known_intrinsics, timings)
         t0 = time.perf_counter()
         mapping = _mapping_options(p, len(names))
         log.info("poses (colmap): incremental mapping (%d verified image pairs) ...", num_verified_pairs)
-        models = pycolmap.incremental_mapping(str(database), str(image_dir), str(Path(work) / "sparse"), mapping)
+        models = pycolmap.incremental_mapping(
+            str(database), str(scene.root / "images"), str(Path(work) / "sparse"), mapping
+        )
         timings["map_s"] = time.perf_counter() - t0
 
     where = f"{scene.root}"
@@ -479,7 +567,7 @@ def _name_list(names: list[str], limit: int = 30) -> str:
     return ", ".join(names[:limit]) + f" and {len(names) - limit} more"
 
 
-def _prepare_database(database: Path, scene: Scene, p: PosesParams) -> int:
+def _prepare_database(database: Path, scene: Scene, known_intrinsics: bool) -> int:
     """Install the scene's intrinsics as camera priors (when known); return the total keypoint count."""
     import pycolmap
 
@@ -492,7 +580,7 @@ def _prepare_database(database: Path, scene: Scene, p: PosesParams) -> int:
                 f"{scene.root / 'images'}: pycolmap could not read the image(s) {_name_list(absent)}."
             )
         total = sum(int(db.num_keypoints_for_image(img.image_id)) for img in images)
-        if p.known_intrinsics:
+        if known_intrinsics:
             by_name = {f"{c.name}.png": c for c in scene.cameras}
             for img in images:
                 cam = by_name[img.name]
