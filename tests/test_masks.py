@@ -129,6 +129,18 @@ class TestSimulated:
             assert got == _object_masks(ids, objects, params.min_mask_pixels)
             np.testing.assert_array_equal(scores, 1.0)
 
+    def test_without_object_table(self):
+        # no objects.json at all: every id is a stand-alone object; groups come from adjacency
+        ids = tiny_instance_map(0)
+        masks, _ = simulate_view_masks(ids, None, frame_rng(0, 0), SimulateParams(inconsistency=0.0))
+        assert {m.tobytes() for m in masks} == _object_masks(ids, None, 16)
+        statuses = [
+            object_status(simulate_view_masks(tiny_instance_map(v), None, frame_rng(0, v),
+                                              SimulateParams(inconsistency=1.0))[0], tiny_instance_map(v), None)
+            for v in range(6)
+        ]
+        assert cross_view_disagreement(statuses)["inconsistent_fraction"] >= 0.5
+
     def test_ground_truth_objects_are_the_object_level(self):
         # the table's three parts are one mask at inconsistency 0, and the group is not merged
         ids = tiny_instance_map(0)

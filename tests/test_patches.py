@@ -133,14 +133,32 @@ class TestMasksToPatches:
         assert hier.num_patches == 5  # background-of-mask-0 is cut into three by the two stripes
         assert hier.containers(int(patch_map[0, 15])) == [0, 1]
 
+    def test_thin_ring_absorbed(self):
+        # an object mask dilated by 1 px overlaps the floor in a 1-px ring of ~40 px
+        masks = np.zeros((2, 20, 20), bool)
+        masks[0] = True
+        masks[0, 6:14, 6:14] = False  # the floor excludes the object ...
+        masks[1, 5:15, 5:15] = True  # ... whose mask is 1 px too large
+        _, hier = masks_to_patches(masks, 20)
+        assert hier.num_patches == 3  # floor, object, ring (36 px, thin)
+        patch_map, hier = masks_to_patches(masks, 20, min_patch_width=3)
+        assert hier.num_patches == 2
+        assert patch_map[5, 5] == patch_map[0, 0]  # ring joins the floor (largest, common mask 0)
+        # a 3-px-wide band is not thin at width 3 but is at width 5
+        masks = np.zeros((2, 12, 20), bool)
+        masks[0] = True
+        masks[1, 4:7, :] = True
+        assert masks_to_patches(masks, 0, min_patch_width=3)[1].num_patches == 2  # above+below: one patch
+        assert masks_to_patches(masks, 0, min_patch_width=5)[1].num_patches == 1
+
     @pytest.mark.parametrize("split", [False, True])
-    @pytest.mark.parametrize("min_pixels", [0, 5, 30])
-    def test_matches_slow_reference(self, split, min_pixels):
-        rng = np.random.default_rng(100 + min_pixels)
+    @pytest.mark.parametrize("min_pixels,min_width", [(0, 0), (5, 3), (30, 0), (0, 5)])
+    def test_matches_slow_reference(self, split, min_pixels, min_width):
+        rng = np.random.default_rng(100 + min_pixels + min_width)
         for trial in range(3):
             masks = _random_masks(rng, int(rng.integers(1, 9)), 18, 24)
-            fast_map, hier = masks_to_patches(masks, min_pixels, split_disconnected=split)
-            ref_map, ref_containers = _masks_to_patches_reference(masks, min_pixels, split)
+            fast_map, hier = masks_to_patches(masks, min_pixels, split_disconnected=split, min_patch_width=min_width)
+            ref_map, ref_containers = _masks_to_patches_reference(masks, min_pixels, split, min_width)
             np.testing.assert_array_equal(fast_map, ref_map)
             assert hier.patch_masks == ref_containers
 

@@ -10,7 +10,8 @@ Definition used here (one choice made where the paper is silent):
 
 * A pixel's *signature* is the set of masks covering it.  Pixels covered by no mask get label 0.
 * Connected regions (4-neighbourhood) of equal signature are the raw pieces.  A piece smaller than
-  ``min_patch_pixels`` (boundary slivers of slightly misaligned masks) is absorbed into the largest
+  ``min_patch_pixels`` or thinner than ``min_patch_width`` everywhere (the slivers and rings left
+  where slightly misaligned masks overlap) is absorbed into the largest
   (by area, ties to the lower piece number) 4-adjacent piece that shares at least one covering mask
   with it, i.e. lies inside a common coarser mask, provided that neighbour is bigger than the
   tiny piece itself (same order); otherwise the tiny piece stays (and may receive smaller ones).
@@ -39,6 +40,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 from skimage.measure import label as _label_regions
 from tqdm import tqdm
@@ -59,19 +61,25 @@ class PatchParams:
 
     Attributes:
         min_patch_pixels: pieces with fewer pixels are absorbed into their largest neighbour inside
-            a common coarser mask (0 disables absorption).
+            a common coarser mask (0 disables).
+        min_patch_width: pieces whose thickness (largest city-block distance from a pixel to the
+            outside of the piece) is below half of this are absorbed likewise; 3 absorbs slivers
+            at most 2 pixels wide (<= 2 disables).
         split_disconnected: make every connected piece its own patch instead of one patch per
             distinct mask combination.
         preview_views: number of views shown in ``preview.png`` (0: no preview).
     """
 
     min_patch_pixels: int = 20
+    min_patch_width: int = 3
     split_disconnected: bool = False
     preview_views: int = 4
 
     def __post_init__(self) -> None:
         if self.min_patch_pixels < 0:
             raise ValueError(f"min_patch_pixels must be >= 0, got {self.min_patch_pixels}")
+        if self.min_patch_width < 0:
+            raise ValueError(f"min_patch_width must be >= 0, got {self.min_patch_width}")
         if self.preview_views < 0:
             raise ValueError(f"preview_views must be >= 0, got {self.preview_views}")
 
@@ -245,6 +253,31 @@ def _unpack_words(words: np.ndarray, count: int) -> np.ndarray:
     return ((words[:, k // 64] >> (k % 64).astype(np.uint64)) & np.uint64(1)).astype(bool)
 
 
+def _piece_thickness(pieces: np.ndarray, num_pieces: int) -> np.ndarray:
+    """[num_pieces + 1] int64: per piece, the largest city-block distance from one of its pixels to
+    the nearest in-image pixel outside the piece (1 for a 1- or 2-pixel-wide sliver).
+
+    Args:
+        pieces: [H, W] piece labels (0 = uncovered, also a "piece" for this purpose).
+    """
+    H, W = pieces.shape
+    edge = np.zeros((H, W), dtype=bool)
+    horizontal = pieces[:, :-1] != pieces[:, 1:]
+    vertical = pieces[:-1, :] != pieces[1:, :]
+    edge[:, :-1] |= horizontal
+    edge[:, 1:] |= horizontal
+    edge[:-1, :] |= vertical
+    edge[1:, :] |= vertical
+    thickness = np.zeros(num_pieces + 1, dtype=np.int64)
+    if not edge.any():
+        thickness[:] = H + W  # a single piece: nothing outside it
+        return thickness
+    # distance to the nearest edge pixel; the nearest outside pixel is one step further
+    dist = cv2.distanceTransform((~edge).astype(np.uint8), cv2.DIST_L1, 3).astype(np.int64) + 1
+    np.maximum.at(thickness, pieces.ravel(), dist.ravel())
+    return thickness
+
+
 def _adjacent_pairs(pieces: np.ndarray) -> np.ndarray:
     """[E, 2] int64 unordered-once pairs (a < b) of distinct nonzero labels that are 4-adjacent."""
     num = int(pieces.max(initial=0)) + 1
@@ -262,6 +295,7 @@ def masks_to_patches(
     masks: np.ndarray,
     min_patch_pixels: int = PatchParams.min_patch_pixels,
     *,
+    min_patch_width: int = 0,
     scores: np.ndarray | None = None,
     split_disconnected: bool = False,
     frame: str = "",
@@ -271,6 +305,7 @@ def masks_to_patches(
     Args:
         masks: [M, H, W] bool mask stack.
         min_patch_pixels: pieces smaller than this are absorbed (0: no absorption).
+        min_patch_width: pieces with thickness * 2 < this are absorbed too (<= 2: never).
         scores: [M] mask scores (default all 1).
         split_disconnected: one patch per connected piece instead of per mask combination.
         frame: view name stored in the hierarchy.
@@ -301,8 +336,10 @@ def masks_to_patches(
 
     # tiny-piece absorption: each tiny piece points at its largest qualifying neighbour
     parent = np.arange(num_pieces + 1)
-    if min_patch_pixels > 0 and num_pieces > 1:
+    if (min_patch_pixels > 0 or min_patch_width > 2) and num_pieces > 1:
         tiny = piece_area < min_patch_pixels
+        if min_patch_width > 2:
+            tiny |= 2 * _piece_thickness(pieces, num_pieces) < min_patch_width
         tiny[0] = False
         pairs = _adjacent_pairs(pieces)
         if tiny.any() and len(pairs):
@@ -367,7 +404,7 @@ def masks_to_patches(
 
 
 def _masks_to_patches_reference(
-    masks: np.ndarray, min_patch_pixels: int, split_disconnected: bool = False
+    masks: np.ndarray, min_patch_pixels: int, split_disconnected: bool = False, min_patch_width: int = 0
 ) -> tuple[np.ndarray, list[list[int]]]:
     """Obviously-correct loop version of :func:`masks_to_patches` (small inputs only).
 
@@ -406,9 +443,19 @@ def _masks_to_patches_reference(
                     if a and b and a != b:
                         neighbours[a].add(b)
                         neighbours[b].add(a)
+    # thickness: largest city-block distance from a pixel of the piece to a pixel outside it
+    labels = np.array(piece)
+    ys, xs = np.mgrid[0:H, 0:W]
+    thickness = [0] * len(piece_sig)
+    for y in range(H):
+        for x in range(W):
+            outside = labels != labels[y, x]
+            d = int((np.abs(ys - y) + np.abs(xs - x))[outside].min()) if outside.any() else H + W
+            thickness[labels[y, x]] = max(thickness[labels[y, x]], d)
     target = list(range(len(piece_sig)))
     for p in range(1, len(piece_sig)):
-        if piece_area[p] >= min_patch_pixels:
+        thin = min_patch_width > 2 and 2 * thickness[p] < min_patch_width
+        if piece_area[p] >= min_patch_pixels and not thin:
             continue
         best = None
         for n in sorted(neighbours[p]):
@@ -465,7 +512,12 @@ def run_patches(scene: Scene, masks_dir: Path, out_dir: Path, params: dict) -> N
     for cam in tqdm(scene.cameras, desc="patches", unit="view"):
         masks, scores = read_mask_npz(masks_dir / f"{cam.name}.npz", cam.height, cam.width)
         patch_map, hierarchy = masks_to_patches(
-            masks, p.min_patch_pixels, scores=scores, split_disconnected=p.split_disconnected, frame=cam.name
+            masks,
+            p.min_patch_pixels,
+            min_patch_width=p.min_patch_width,
+            scores=scores,
+            split_disconnected=p.split_disconnected,
+            frame=cam.name,
         )
         write_u16(out_dir / f"{cam.name}.png", patch_map)
         write_json(out_dir / f"{cam.name}.json", hierarchy.to_json())

@@ -75,8 +75,8 @@ class SimulateParams:
     multi_rate: float = 0.3
     miss_rate: float = 0.5
     split_rate: float = 0.35
-    jitter_pixels: int = 2
-    warp_pixels: float = 1.5
+    jitter_pixels: int = 1
+    warp_pixels: float = 1.0
     warp_cells: int = 6
     small_fraction: float = 0.002
     thin_pixels: float = 2.0
