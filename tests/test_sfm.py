@@ -426,6 +426,8 @@ def test_reference_pose_detection(room, tmp_path):
     scene = subset_scene(room, tmp_path / "scene", names)
     write_cameras(scene.root, [Camera(c.name, c.split, c.width, c.height, c.K, np.eye(4)) for c in scene.cameras])
     assert not scene_has_reference_poses(Scene.read(scene.root))
+    with pytest.raises(ConfigError, match="needs the scene's own poses"):
+        run_poses(Scene.read(scene.root), tmp_path / "poses", {"mode": "dataset"})
 
 
 def test_cli_poses_step(room, tmp_path, capsys):

@@ -69,10 +69,11 @@ SUSPECT_ROTATION_DEG = 2.0
 
 @dataclasses.dataclass
 class PosesParams:
-    """Parameters of the ``poses`` step (COLMAP's defaults where COLMAP has one).
+    """Parameters of the ``poses`` step (COLMAP's defaults where COLMAP has one, except
+    ``sift_peak_threshold``).
 
     Attributes:
-        mode: "colmap" (run SfM) or "dataset" (use the scene's cameras; points from depth if any).
+        mode: "colmap" (run SfM) or "dataset" (use the scene's cameras; see ``dataset_points``).
         matcher: "exhaustive" (every pair; small scenes) or "sequential" (video-like captures, frames
             matched to their ``sequential_overlap`` successors in name order).
         sequential_overlap: number of following frames each frame is matched with (sequential).
@@ -197,6 +198,11 @@ def camera_diameter(centres: np.ndarray) -> float:
 
 
 def _run_dataset(scene: Scene, out_dir: Path, p: PosesParams) -> dict:
+    if not scene_has_reference_poses(scene):
+        raise ConfigError(
+            f"{scene.root / 'cameras.json'}: poses mode 'dataset' needs the scene's own poses, but they are "
+            "unknown (identity poses or meta.json 'poses': 'unknown'); use mode 'colmap'."
+        )
     cameras = [dataclasses.replace(c) for c in scene.cameras]
     for cam in cameras:
         _check_pinhole(cam, str(scene.root / "cameras.json"))
@@ -542,7 +548,7 @@ def _run_colmap(scene: Scene, out_dir: Path, p: PosesParams) -> dict:
         cameras.append(Camera(cam.name, cam.split, cam.width, cam.height, K, w2c))
     report["filled_from_scene"] = filled
     if p.known_intrinsics is False or p.refine_intrinsics:
-        report["intrinsics"] = _intrinsics_report(cameras, scene)
+        report["intrinsics"] = _intrinsics_report([c for c in cameras if c.name in registered], scene)
 
     model_dir = out_dir / "sparse" / "0"
     model_dir.mkdir(parents=True, exist_ok=True)
