@@ -79,7 +79,7 @@ class SimulateParams:
     warp_pixels: float = 1.0
     warp_cells: int = 6
     small_fraction: float = 0.002
-    thin_pixels: float = 2.0
+    thin_pixels: float = 1.5
     flat_categories: list[str] = dataclasses.field(default_factory=lambda: list(DEFAULT_FLAT_CATEGORIES))
     flat_fraction: float = 0.12
     touch_pixels: int = 4
