@@ -504,3 +504,19 @@ class TestSam:
         np.testing.assert_allclose(scores, [0.8, 0.7])
         empty, empty_scores = postprocess(masks[:0], np.zeros(0, np.float32), np.zeros(0, np.float32), SamParams())
         assert empty.shape == (0, 20, 20) and empty_scores.shape == (0,)
+
+
+def test_cli_masks_and_patches(tmp_path, monkeypatch, capsys):
+    from trace3d.cli import main
+
+    scene = make_scene(tmp_path / "s", views=2)
+    assert main(["masks", "--scene", str(scene.root), "--out", str(tmp_path / "m"),
+                 "--params", "{inconsistency: 0.4, seed: 2}"]) == 0
+    assert main(["patches", "--scene", str(scene.root), "--masks", str(tmp_path / "m"),
+                 "--out", str(tmp_path / "p"), "--params", "{preview_views: 1}"]) == 0
+    assert (tmp_path / "p" / "frame_001.png").is_file() and (tmp_path / "p" / "preview.png").is_file()
+    monkeypatch.setitem(sys.modules, "segment_anything", None)
+    assert main(["masks", "--scene", str(scene.root), "--out", str(tmp_path / "m2"), "--source", "sam"]) == 2
+    err = capsys.readouterr().err
+    assert "segment_anything" in err and "`simulated`" in err
+    assert not (tmp_path / "m2").exists()  # nothing half-written
