@@ -346,6 +346,19 @@ class TestFiles:
         np.testing.assert_array_equal(m1, np.stack([ids1 == 40, ids1 == 41]))
         np.testing.assert_array_equal(s1, [0.5, 0.5])
 
+    def test_other_folder_and_default_scores(self, tmp_path):
+        scene = make_scene(tmp_path / "s", views=1)
+        folder = tmp_path / "elsewhere"
+        folder.mkdir()
+        ids = tiny_instance_map(0)
+        np.savez_compressed(folder / "frame_000.npz", masks=np.stack([ids == 1, ids == 2]))
+        run_masks(scene, tmp_path / "m", "files", {"folder": str(folder), "default_score": 0.25})
+        masks, scores = read_mask_npz(tmp_path / "m" / "frame_000.npz", H, W)
+        assert len(masks) == 2
+        np.testing.assert_array_equal(scores, [0.25, 0.25])
+        summary = json.loads((tmp_path / "m" / "masks.json").read_text())
+        assert summary["source"] == "files" and summary["masks_per_view"] == {"frame_000": 2}
+
     def test_size_mismatch_refused(self, tmp_path):
         scene = make_scene(tmp_path / "s", views=1)
         (scene.root / "masks").mkdir()

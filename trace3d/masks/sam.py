@@ -30,7 +30,9 @@ from ..scene import Scene
 log = logging.getLogger(__name__)
 
 MODEL_TYPES = ("default", "vit_h", "vit_l", "vit_b")
-ALTERNATIVES = "use the `simulated` mask source (from ground truth) or the `files` source (masks computed elsewhere) instead"
+ALTERNATIVES = (
+    "use the `simulated` mask source (from ground truth) or the `files` source (masks computed elsewhere) instead"
+)
 
 
 @dataclasses.dataclass
