@@ -254,7 +254,10 @@ class GaussianModel:
         return self.map(lambda t: t.detach()[keep])
 
     def is_finite(self) -> bool:
-        return all(bool(torch.isfinite(t).all()) for t in self.tensors().values())
+        """Whether every parameter is finite (one reduction per tensor; an overflowing sum counts as not finite)."""
+        with torch.no_grad():
+            total = torch.stack([t.detach().float().abs().sum() for t in self.tensors().values()]).sum()
+        return bool(torch.isfinite(total))
 
     # --- activations ---------------------------------------------------------------------------
     @property
@@ -298,9 +301,9 @@ class GaussianModel:
             [N, 3] colours, ``SH + 0.5`` clamped at 0 (the 3DGS convention).
         """
         degree = self.sh_degree if degree is None else min(int(degree), self.sh_degree)
-        coeffs = torch.cat([self.sh_dc, self.sh_rest], dim=1)
         if degree == 0:
-            return (SH_C0 * coeffs[:, 0] + 0.5).clamp_min(0.0)
+            return (SH_C0 * self.sh_dc[:, 0] + 0.5).clamp_min(0.0)
+        coeffs = torch.cat([self.sh_dc, self.sh_rest[:, : num_sh_rest(degree)]], dim=1)
         center = torch.as_tensor(np.asarray(camera_center) if not torch.is_tensor(camera_center) else camera_center)
         center = center.to(dtype=self.means.dtype, device=self.means.device)
         directions = F.normalize(self.means - center[None], dim=-1)

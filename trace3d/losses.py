@@ -120,9 +120,14 @@ def photometric_loss(
     return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - s), l1, s
 
 
-def psnr(image: torch.Tensor, target: torch.Tensor) -> float:
-    """Peak signal-to-noise ratio in dB of images in [0, 1] (``inf`` for identical images)."""
-    mse = float(((image.detach().double() - target.detach().double()) ** 2).mean())
+def psnr(image: torch.Tensor, target: torch.Tensor, exact: bool = True) -> float:
+    """Peak signal-to-noise ratio in dB of images in [0, 1] (``inf`` for identical images).
+
+    ``exact`` computes the error in float64; otherwise in the images' dtype (for running logs).
+    """
+    if exact:
+        image, target = image.double(), target.double()
+    mse = float(((image.detach() - target.detach()) ** 2).mean())
     if mse <= 0.0:
         return math.inf
     return -10.0 * math.log10(mse)

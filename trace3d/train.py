@@ -547,9 +547,6 @@ def fit(
             _diverged(f"the loss became {float(loss.detach())} at iteration {iteration}", iteration, checkpoint,
                       checkpoint_iteration, history)
         loss.backward()
-        if not all(bool(torch.isfinite(p.grad).all()) for p in state.model.tensors().values() if p.grad is not None):
-            _diverged(f"a gradient became non-finite at iteration {iteration}", iteration, checkpoint,
-                      checkpoint_iteration, history)
 
         with torch.no_grad():
             if params.densify and iteration < schedule["densify_until"]:
@@ -566,7 +563,7 @@ def fit(
                     state.reset_opacity()
                     last_reset = iteration
             state.step()
-            if not state.model.is_finite():
+            if not state.model.is_finite():  # also catches non-finite gradients (Adam propagates them)
                 _diverged(f"a parameter became non-finite at iteration {iteration}", iteration, checkpoint,
                           checkpoint_iteration, history)
             if iteration % schedule["checkpoint_interval"] == 0:
@@ -575,7 +572,7 @@ def fit(
         sums_count += 1
         for key, value in (("loss", loss), ("l1", l1), ("ssim", s), ("normal", normal_term), ("distortion", dist_term)):
             sums[key] += float(value.detach())
-        sums["psnr"] += psnr(out.features.detach().clamp(0, 1), target)
+        sums["psnr"] += psnr(out.features.detach().clamp(0, 1), target, exact=False)
         if iteration % params.log_interval == 0 or iteration == iterations:
             row = {"iteration": iteration, **{k: v / sums_count for k, v in sums.items()},
                    "gaussians": len(state), "sh_degree": active_sh, "seconds": time.perf_counter() - start}
