@@ -2,13 +2,22 @@
 
 Scenes are seeded and synthetic: splats scattered through the camera frustum (depths 2..6), tangent
 scales log-uniform so that footprints span about 1 to 12 pixels, random orientations and opacities,
-RGB features.  Times are medians over repeats after a warm-up (numba compilation excluded; reported
-separately).  The headline figures sit at the top level of the JSON:
+RGB features; trace labels are 32 Voronoi patches.  Times are wall-clock medians over repeats
+after a warm-up (numba compilation excluded, reported separately; the dense reference runs once,
+without warm-up).  ``render`` and ``trace`` are timed end to end (projection, binning, kernels,
+autograd); ``kernel_forward_ms`` is the forward kernel alone.  The headline figures sit at the top
+level of the JSON:
 
 * ``speedup_fwd_bwd``: reference / kernel time of forward+backward, 5,000 splats at 128x96.
-* ``trace_over_forward``: kernel trace time / kernel forward time, 50,000 splats at 320x240.
-* ``pair_evals_per_s``: pixel-splat pairs visited per second by the forward kernel (every pair its
-  inner loop touches, skipped or not) on the 50,000-splat scene.
+* ``trace_over_forward``: trace time / forward time, 50,000 splats at 320x240.
+* ``pair_evals_per_s``: pixel-splat pairs evaluated per second by the forward kernel on the
+  50,000-splat scene: every pair its inner loop touches, skipped or not.  The kernel evaluates a
+  whole 16-pixel tile row per splat row (vectorised), so this counts 16 pairs per (splat, tile row);
+  ``footprint_pairs`` counts only the pixels inside each splat's footprint box, for comparison.
+
+The machine is shared: the load average at start and end is part of the result, and
+``kernel_forward_process_cpu_ms`` (CPU time of the process) shows how much of the wall time was
+spent computing rather than waiting for a core.
 """
 
 from __future__ import annotations
@@ -54,9 +63,10 @@ def make_scene(n: int, width: int, height: int, seed: int = 0,
     return Splats(means, quats, scales, opacities), camera, features
 
 
-def _time(fn: Callable[[], object], repeats: int) -> float:
-    """Median wall time of ``fn`` in milliseconds (after one warm-up call)."""
-    fn()
+def _time(fn: Callable[[], object], repeats: int, warmup: bool = True) -> float:
+    """Median wall time of ``fn`` in milliseconds (after one warm-up call unless ``warmup`` is False)."""
+    if warmup:
+        fn()
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -69,8 +79,17 @@ def _with_grad(splats: Splats, features: torch.Tensor) -> tuple[Splats, torch.Te
     return Splats(*(t.detach().clone().requires_grad_() for t in splats)), features.detach().clone().requires_grad_()
 
 
+def patch_labels(width: int, height: int, num_labels: int = 32, seed: int = 2) -> torch.Tensor:
+    """[H, W] int64 piecewise-constant labels (Voronoi cells of random sites), like a patch map."""
+    rng = np.random.default_rng(seed)
+    sites = rng.random((num_labels, 2)) * [width, height]
+    ys, xs = np.mgrid[0:height, 0:width]
+    d = (xs[..., None] + 0.5 - sites[:, 0]) ** 2 + (ys[..., None] + 0.5 - sites[:, 1]) ** 2
+    return torch.from_numpy(d.argmin(-1).astype(np.int64))
+
+
 def _measure(splats: Splats, camera: Camera, features: torch.Tensor, backend: str, repeats: int,
-             with_trace: bool) -> dict:
+             with_trace: bool, warmup: bool = True) -> dict:
     sp, feats = _with_grad(splats, features)
     gen = torch.Generator().manual_seed(1)
     up = torch.rand(camera.height, camera.width, 3, generator=gen)
@@ -83,10 +102,10 @@ def _measure(splats: Splats, camera: Camera, features: torch.Tensor, backend: st
         out = render(sp, camera, feats, backend=backend)
         ((out.features * up).sum() + out.depth.sum() + out.normal.sum()).backward()
 
-    res = {"forward_ms": _time(fwd, repeats), "forward_backward_ms": _time(fwd_bwd, repeats)}
+    res = {"forward_ms": _time(fwd, repeats, warmup), "forward_backward_ms": _time(fwd_bwd, repeats, warmup)}
     if with_trace:
-        labels = torch.from_numpy(np.random.default_rng(2).integers(0, 32, (camera.height, camera.width)))
-        res["trace_ms"] = _time(lambda: trace(splats, camera, labels, 32, backend=backend), repeats)
+        labels = patch_labels(camera.width, camera.height)
+        res["trace_ms"] = _time(lambda: trace(splats, camera, labels, 32, backend=backend), repeats, warmup)
     return res
 
 
@@ -101,7 +120,17 @@ def _pairs_per_second(splats: Splats, camera: Camera, features: torch.Tensor, re
             binning.width, binning.height, binning.tiles_x, 0.01)
     pairs = int(forward_kernel(*args)[-1].sum())
     ms = _time(lambda: forward_kernel(*args), repeats)
-    return {"kernel_forward_ms": ms, "pairs": pairs, "pair_evals_per_s": pairs / (ms / 1000.0),
+    cpu0 = time.process_time()
+    forward_kernel(*args)
+    cpu_ms = (time.process_time() - cpu0) * 1000.0
+    # pixels of each entry's footprint box inside its tile (what a scalar loop over the box visits)
+    tile = np.repeat(np.arange(binning.offsets.shape[0] - 1), np.diff(binning.offsets))
+    tx, ty = (tile % binning.tiles_x) * 16, (tile // binning.tiles_x) * 16
+    box = binning.entry_boxes
+    footprint = (np.clip(np.minimum(box[:, 2], tx + 16) - np.maximum(box[:, 0], tx), 0, None)
+                 * np.clip(np.minimum(box[:, 3], ty + 16) - np.maximum(box[:, 1], ty), 0, None)).sum()
+    return {"kernel_forward_ms": ms, "kernel_forward_process_cpu_ms": cpu_ms, "pairs": pairs,
+            "pair_evals_per_s": pairs / (ms / 1000.0), "footprint_pairs": int(footprint),
             "tile_entries": int(binning.lists.shape[0]), "visible": int(proj.visible.sum())}
 
 
@@ -110,7 +139,7 @@ def run_bench(quick: bool = False) -> dict:
     repeats = 2 if quick else 5
     t0 = time.perf_counter()
     warm, cam, feats = make_scene(200, 64, 48)
-    render(*_with_grad(warm, feats)[:1], cam, feats)
+    _measure(warm, cam, feats, "numba", 1, with_trace=True)  # compile (or load cached) kernels
     compile_s = time.perf_counter() - t0
 
     result: dict = {
@@ -122,7 +151,7 @@ def run_bench(quick: bool = False) -> dict:
     small_n, small_w, small_h = (2000, 128, 96) if quick else (5000, 128, 96)
     splats, camera, features = make_scene(small_n, small_w, small_h)
     kernel = _measure(splats, camera, features, "numba", repeats, with_trace=True)
-    reference = _measure(splats, camera, features, "reference", 1 if quick else 2, with_trace=False)
+    reference = _measure(splats, camera, features, "reference", 1, with_trace=False, warmup=False)
     result["small"] = {"n": small_n, "width": small_w, "height": small_h, "kernel": kernel, "reference": reference}
     result["speedup_forward"] = reference["forward_ms"] / kernel["forward_ms"]
     result["speedup_fwd_bwd"] = reference["forward_backward_ms"] / kernel["forward_backward_ms"]
