@@ -946,7 +946,11 @@ def _reseed(texture: Texture, k: int) -> Texture:
 
 @dataclasses.dataclass
 class ObjectSpec:
-    """An object ready to be placed: local parts, footprint half sizes (x, y) and height."""
+    """An object ready to be placed: local parts, footprint half sizes (x, y) and height.
+
+    ``aligned``: keep the support's orientation (a row of books stands along the shelf) instead of
+    a random yaw.
+    """
 
     name: str
     category: str
@@ -954,6 +958,7 @@ class ObjectSpec:
     half_x: float
     half_y: float
     height: float
+    aligned: bool = False
 
 
 @dataclasses.dataclass
@@ -1653,7 +1658,7 @@ class _RoomBuilder:
             for part in parts:
                 part.center = (part.center[0] - x / 2, 0, part.center[2])
             spec = ObjectSpec("book_row", "books", parts, x / 2, 0.12, max_h)
-            spec.no_yaw = True  # type: ignore[attr-defined]
+            spec.aligned = True
         elif kind == "bottle":
             rad, h = r.uniform(0.03, 0.045), r.uniform(0.18, 0.26)
             glass = self.texture("ceramic")
@@ -1693,7 +1698,7 @@ class _RoomBuilder:
         spec = self.spec_item(kind, surface.clearance)
         if spec is None or spec.half_x > surface.half_x or spec.half_y > surface.half_y:
             return False
-        no_yaw = getattr(spec, "no_yaw", False)
+        no_yaw = spec.aligned
         for _ in range(30):
             yaw = 0.0 if no_yaw else r.uniform(0, 2 * math.pi)
             ext_x = spec.half_x if no_yaw else max(spec.half_x, spec.half_y)
