@@ -17,6 +17,7 @@ from trace3d.gaussians import (
     init_from_depth,
     init_from_points,
     init_random,
+    _nearest_neighbour_scales_reference,
     nearest_neighbour_scales,
     num_sh_rest,
     quat_to_rotmat,
@@ -125,11 +126,15 @@ def test_quats_aligning_z_to_normals():
 def test_nearest_neighbour_scales_brute_force():
     g = torch.Generator().manual_seed(3)
     pts = torch.randn(57, 3, generator=g)
-    got = nearest_neighbour_scales(pts, k=3, chunk_elements=200)  # forces several chunks
     d2 = ((pts[:, None] - pts[None]) ** 2).sum(-1)
     d2.fill_diagonal_(float("inf"))
     expected = d2.sort(dim=1).values[:, :3].mean(1).sqrt()
-    torch.testing.assert_close(got, expected, atol=1e-5, rtol=1e-5)
+    slow = _nearest_neighbour_scales_reference(pts, k=3, chunk_elements=200)  # forces several chunks
+    torch.testing.assert_close(slow, expected, atol=1e-5, rtol=1e-5)
+    fast = nearest_neighbour_scales(pts, k=3)
+    torch.testing.assert_close(fast, slow, atol=1e-6, rtol=1e-6)
+    assert nearest_neighbour_scales(pts[:1]).tolist() == [1.0]
+    torch.testing.assert_close(nearest_neighbour_scales(pts[:2]), (pts[0] - pts[1]).norm().expand(2))
 
 
 def test_init_from_points_grid_scales_colours_and_opacity():
