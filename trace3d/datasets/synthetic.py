@@ -29,10 +29,12 @@ import colorsys
 import dataclasses
 import logging
 import math
+import os
 import tempfile
 import time
 from pathlib import Path
 
+import numba
 import numpy as np
 from numba import njit, prange
 from tqdm import tqdm
@@ -1924,7 +1926,8 @@ def run_bench(quick: bool = False) -> dict:
     """Time generating the default room (``quick``: 8 views) including PNG writing.
 
     Returns views, resolution, compile_s (first-call numba compile / cache load), total_s and
-    ms_per_view (rendering + writing, after compilation).
+    ms_per_view (wall clock: rendering + writing, after compilation), cpu_s (process CPU time),
+    numba_threads and the 1-minute load average (the machine may be shared).
     """
     params = SyntheticParams(num_views=8) if quick else SyntheticParams()
     start = time.perf_counter()
@@ -1933,8 +1936,10 @@ def run_bench(quick: bool = False) -> dict:
     compile_s = time.perf_counter() - start
     with tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()
+        cpu_start = time.process_time()
         generate_scene(Path(tmp) / "scene", params)
         total = time.perf_counter() - start
+        cpu = time.process_time() - cpu_start
     return {
         "views": params.num_views,
         "resolution": [params.width, params.height],
@@ -1942,4 +1947,7 @@ def run_bench(quick: bool = False) -> dict:
         "compile_s": round(compile_s, 3),
         "total_s": round(total, 3),
         "ms_per_view": round(1000 * total / params.num_views, 2),
+        "cpu_s": round(cpu, 3),  # all threads of this process; on a busy machine total_s >> cpu_s / cores
+        "numba_threads": int(numba.get_num_threads()),
+        "load_average_1min": round(os.getloadavg()[0], 2),
     }
