@@ -11,7 +11,7 @@ import torch
 
 from trace3d.errors import Trace3DError
 from trace3d.render import Splats, render, trace, trace_argmax, trace_by_backward
-from trace3d.render.projection import project
+from trace3d.render.projection import footprint_boxes, footprint_boxes_fast, project
 from trace3d.scene import Camera
 
 OUTPUTS = ("features", "alpha", "depth", "normal", "median_depth", "distortion")
@@ -144,6 +144,28 @@ class TestKernelAgainstReference:
         for name in g1:
             if g1[name] is not None:
                 assert torch.equal(g1[name], g2[name]), name
+
+
+class TestProjection:
+    @pytest.mark.parametrize("seed", [0, 1])
+    def test_fast_boxes_match_numpy(self, seed):
+        splats, camera, _ = make_scene(seed, n=300, camera=make_camera(rotate=bool(seed)))
+        proj = project(splats, camera)
+        front = proj.depths > 0.01
+        args = (proj.ray_transforms.detach(), proj.means2d.detach(), splats.opacities, front, camera.width, camera.height)
+        fast, slow = footprint_boxes_fast(*args), footprint_boxes(*args)
+        assert np.array_equal(fast, slow)
+        assert np.array_equal(fast, proj.boxes)
+        assert (fast[:, 2:] <= [camera.width, camera.height]).all() and (fast[:, :2] >= 0).all()
+
+    def test_rotation_and_normals(self):
+        splats, camera, _ = make_scene(9, n=50, camera=make_camera(rotate=True))
+        proj = project(splats, camera)
+        assert torch.allclose(proj.normals.norm(dim=-1), torch.ones(50), atol=1e-5)
+        # normals face the camera: n . p_c <= 0
+        p_cam = splats.means @ torch.as_tensor(camera.rotation, dtype=torch.float32).T + torch.as_tensor(
+            camera.translation, dtype=torch.float32)
+        assert ((proj.normals * p_cam).sum(-1) <= 1e-6).all()
 
 
 class TestReference:

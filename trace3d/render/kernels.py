@@ -431,8 +431,8 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
                         u = ru[px]
                         v = rv[px]
                         touched = True
-                        one_minus = one - alpha
-                        t_before = trans[p] / one_minus
+                        inv_one_minus = one / (one - alpha)
+                        t_before = trans[p] * inv_one_minus
                         w = alpha * t_before
                         # dot of the upstream gradient with this splat's per-pixel values
                         dz = z - depth_ref[py, ix]
@@ -443,7 +443,7 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
                             vg = v_acc[py, ix, ch]
                             dot += vg * vals[g, ch]
                             g_vals[ch] += w * vg
-                        g_alpha = t_before * dot - (after[p] + v_final_t[py, ix] * final_t[py, ix]) / one_minus
+                        g_alpha = t_before * dot - (after[p] + v_final_t[py, ix] * final_t[py, ix]) * inv_one_minus
                         after[p] += w * dot
                         trans[p] = t_before
                         g_z = w * (vz + two * dz * vz2)
