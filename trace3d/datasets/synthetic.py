@@ -2,10 +2,11 @@
 
 A room is a closed box (floor, ceiling, four walls) furnished with objects built from three kinds of
 primitives (boxes, ellipsoids/spheres, capped frustums/cylinders): a table set (table = top + legs,
-chairs = seat + back + legs, items on the table), a shelf holding rows of books and other items, a
-sofa, a cabinet with a table lamp, a floor lamp, plants, a door, a window, paintings, a rug, balls,
-baskets... placed so that they touch and occlude each other (items stand on tables and shelves,
-furniture stands against the walls).  Every primitive carries a procedural *solid* texture evaluated
+chairs = seat + back + legs, items on the table, a rug under it), a shelf holding rows of books and
+other items, a sofa with pillows, a cabinet with a table lamp, a sideboard with a television, a floor
+lamp, plants, a door, a window, paintings, a clock, balls, baskets... placed so that they touch and
+occlude each other (items stand on tables and shelves, furniture stands against the walls).  Some
+pieces are optional, so rooms differ in inventory as well as in layout.  Every primitive carries a procedural *solid* texture evaluated
 in its own local (object-space) coordinates, so a surface point has the same colour from every view;
 shading is Lambertian under fixed point lights with hard shadows and a hemispherical ambient term:
 nothing depends on the viewing direction, so a diffuse Gaussian model can fit the images exactly.
@@ -1402,6 +1403,48 @@ class _RoomBuilder:
             self.place(pillow, origin + rotation @ local, rotation @ rot_x(-0.25), parent=group)
         return True
 
+    def add_tv_unit(self) -> bool:
+        """A low sideboard against a wall with a television (screen + frame + stand) on it."""
+        r = self.rng
+        w, d, h = r.uniform(1.2, 1.8), r.uniform(0.38, 0.45), r.uniform(0.4, 0.5)
+        body = self.texture_of("wood", "paint")
+        doors = self.texture("paint")
+        yb = -0.008  # body centre: doors stick out 16 mm at the front, the back touches the wall
+        parts = [_box("body", (0, yb, h / 2), (w / 2, d / 2, h / 2), body)]
+        n_doors = 2 if w < 1.5 else 3
+        dw = (w - 0.06) / n_doors
+        for i in range(n_doors):
+            xc = -w / 2 + 0.03 + dw * (i + 0.5)
+            parts.append(_box(f"door_{i + 1}", (xc, yb + d / 2 + 0.008, h / 2), (dw / 2 - 0.01, 0.008, h / 2 - 0.04),
+                              _reseed(doors, i)))
+        sideboard = ObjectSpec("sideboard", "sideboard", parts, w / 2, d / 2 + 0.008, h)
+        tv_w = min(w - 0.2, r.uniform(0.9, 1.3))
+        tv_h = tv_w * 9 / 16
+        frame = self.texture("dark")
+        tv_parts = [
+            _box("stand", (0, 0, 0.01), (0.15, 0.1, 0.01), _reseed(frame, 1)),
+            _box("neck", (0, -0.02, 0.07), (0.03, 0.02, 0.06), _reseed(frame, 2)),
+            _box("frame", (0, -0.02, 0.12 + tv_h / 2), (tv_w / 2, 0.025, tv_h / 2), frame),
+            _box("screen", (0, 0.008, 0.12 + tv_h / 2), (tv_w / 2 - 0.025, 0.004, tv_h / 2 - 0.025),
+                 self.texture("art")),  # a picture on the screen (emits nothing: Lambertian like the rest)
+        ]
+        tv = ObjectSpec("tv", "tv", tv_parts, tv_w / 2, 0.1, 0.12 + tv_h)
+        placed = self._against_wall(dataclasses.replace(sideboard, height=h + tv.height))
+        if placed is None:
+            return False
+        origin, rotation, _ = placed
+        group = self.new_group("tv_set")
+        self.place(sideboard, origin, rotation, parent=group)
+        if self.room_left() > 0:
+            self.place(tv, origin + rotation @ np.array([0.0, yb - 0.05, h]), rotation, parent=group)
+        rest = (w / 2 - tv_w / 2 - 0.02) / 2  # free top beside the television, each side
+        for side in (-1, 1):
+            if rest > 0.08:
+                xc = side * (tv_w / 2 + 0.02 + rest)
+                self.surfaces.append(_Surface(origin + rotation @ np.array([xc, yb, h]), rotation, rest,
+                                              d / 2 - 0.03, 0.5, group))
+        return True
+
     def add_cabinet(self) -> bool:
         r = self.rng
         w, d, h = r.uniform(0.8, 1.4), r.uniform(0.4, 0.5), r.uniform(0.7, 0.9)
@@ -1735,12 +1778,14 @@ def build_room(params: SyntheticParams) -> RoomLayout:
     b = _RoomBuilder(params, rng)
     b.build_structure()
     furniture = ["table_set", "shelf", "sofa", "cabinet", "floor_lamp", "plant", "door", "window", "painting",
-                 "painting", "side_table", "clock", "rug"]
-    optional = ("floor_lamp", "plant", "painting", "side_table", "clock")  # each left out with probability 1/4
+                 "painting", "side_table", "clock", "rug", "tv_unit"]
+    # each left out with probability 1/4 so that rooms differ in inventory, not only in layout
+    optional = ("floor_lamp", "plant", "painting", "side_table", "clock", "tv_unit")
     furniture = [k for k in furniture if k not in optional or rng.uniform() >= 0.25]
     order = [furniture[i] for i in rng.permutation(len(furniture))]
     # the big pieces first so that they find wall space
-    priority = {"door": 0, "shelf": 1, "sofa": 1, "cabinet": 1, "table_set": 1, "window": 2, "rug": 4}
+    priority = {"door": 0, "shelf": 1, "sofa": 1, "cabinet": 1, "table_set": 1, "tv_unit": 1, "window": 2,
+                "rug": 4}
     order.sort(key=lambda k: priority.get(k, 3))
     for kind in order:
         if b.room_left() <= 0:
@@ -1753,6 +1798,8 @@ def build_room(params: SyntheticParams) -> RoomLayout:
             ok = b.add_sofa()
         elif kind == "cabinet":
             ok = b.add_cabinet()
+        elif kind == "tv_unit":
+            ok = b.add_tv_unit()
         elif kind == "floor_lamp":
             ok = b.add_free_standing(b.spec_floor_lamp()) is not None
         elif kind == "plant":
