@@ -548,7 +548,7 @@ def trace_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, labe
         cap[t + 1] = cap[t] + (offsets[t + 1] - offsets[t]) * n_local[t]
     rows = np.empty(cap[n_tiles], np.int64)
     cols = np.empty(cap[n_tiles], np.int64)
-    weights = np.zeros(cap[n_tiles], np.float32)
+    weights = np.empty(cap[n_tiles], np.float32)
     used = np.zeros(n_tiles, np.int64)
     for t in prange(n_tiles):
         start = offsets[t]
