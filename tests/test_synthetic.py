@@ -266,6 +266,42 @@ def test_layouts_place_objects_against_walls_and_on_supports():
         assert items, f"seed {seed}: no items on supports"
 
 
+def _inside(p: syn.Primitive, points: np.ndarray, margin: float = 1e-4) -> np.ndarray:
+    """[N] bool: world points [N, 3] strictly inside primitive ``p``."""
+    local = (points - p.center) @ p.rotation
+    if p.shape == syn.SHAPE_BOX:
+        return (np.abs(local) <= p.size - margin).all(1)
+    if p.shape == syn.SHAPE_ELLIPSOID:
+        return ((local / p.size) ** 2).sum(1) <= 1 - margin
+    r0, r1, h = p.size
+    radius = r0 + (r1 - r0) * (local[:, 2] + h) / (2 * h)
+    return (np.abs(local[:, 2]) <= h - margin) & (np.hypot(local[:, 0], local[:, 1]) <= radius - margin)
+
+
+def test_objects_do_not_interpenetrate():
+    """Points sampled inside each object's solids lie (almost) nowhere inside another object's solids."""
+    rng = np.random.default_rng(0)
+    for seed in (0, 5):
+        layout = syn.build_room(syn.SyntheticParams(seed=seed))
+        node = {n.key: n for n in layout.nodes}
+        owner = [n.parent if n.level == "part" else n.key for n in (node[p.leaf] for p in layout.primitives)]
+        skip = {"floor", "ceiling", "wall", "rug"}  # the rug lies on the floor under chair and table legs
+        radii = np.array([syn.bounding_radius(p.shape, p.size) for p in layout.primitives])
+        for i, p in enumerate(layout.primitives):
+            if node[owner[i]].category in skip:
+                continue
+            lo, hi = _aabb(p)
+            points = rng.uniform(lo, hi, (600, 3))
+            points = points[_inside(p, points)]
+            for j, q in enumerate(layout.primitives):
+                if owner[j] == owner[i] or node[owner[j]].category == "rug":
+                    continue
+                if np.linalg.norm(p.center - q.center) > radii[i] + radii[j]:
+                    continue
+                frac = _inside(q, points).mean() if len(points) else 0.0
+                assert frac < 0.05, f"seed {seed}: {node[p.leaf].name} is {frac:.0%} inside {node[q.leaf].name}"
+
+
 def _aabb(p: syn.Primitive) -> tuple[np.ndarray, np.ndarray]:
     """Exact world-space bounding box (lo [3], hi [3]) of a primitive."""
     R = p.rotation

@@ -963,6 +963,13 @@ class ObjectSpec:
     height: float
     aligned: bool = False
 
+    def yaw_radius(self) -> float:
+        """Radius of the footprint under any yaw: max(half_x, half_y) when every part is a solid of
+        revolution around the object's vertical axis, else the footprint's half diagonal."""
+        round_ = all(p.shape != SHAPE_BOX and p.rotation is None and abs(p.center[0]) < 1e-9
+                     and abs(p.center[1]) < 1e-9 for p in self.parts)
+        return max(self.half_x, self.half_y) if round_ else math.hypot(self.half_x, self.half_y)
+
 
 @dataclasses.dataclass
 class _Node:
@@ -1463,7 +1470,7 @@ class _RoomBuilder:
                                    _reseed(front_tex, i)))
             parts.append(_ellipsoid(f"knob_{i + 1}", (0, yb + d / 2 + 0.035, zc), (0.03, 0.018, 0.03), knob))
         spec = ObjectSpec("cabinet", "cabinet", parts, w / 2, d / 2 + front / 2, h)
-        placed = self._against_wall(spec)
+        placed = self._against_wall(spec, z_range=(0.0, h + 0.6))  # keep the wall free above for a lamp
         if placed is None:
             return False
         origin, rotation, _ = placed
@@ -1502,7 +1509,7 @@ class _RoomBuilder:
     def add_free_standing(self, spec: ObjectSpec, parent: int | None = None) -> tuple | None:
         """Place ``spec`` on the floor near a wall with a random yaw; returns (origin, rotation) or None."""
         r = self.rng
-        ext = max(spec.half_x, spec.half_y)
+        ext = spec.yaw_radius()
         for _ in range(200):
             rotation = rot_z(r.uniform(0, 2 * math.pi))
             w_origin, w_rot, length = self.wall_frame(int(r.integers(0, 4)))
@@ -1746,8 +1753,8 @@ class _RoomBuilder:
         no_yaw = spec.aligned
         for _ in range(30):
             yaw = 0.0 if no_yaw else r.uniform(0, 2 * math.pi)
-            ext_x = spec.half_x if no_yaw else max(spec.half_x, spec.half_y)
-            ext_y = spec.half_y if no_yaw else max(spec.half_x, spec.half_y)
+            ext_x = spec.half_x if no_yaw else spec.yaw_radius()
+            ext_y = spec.half_y if no_yaw else spec.yaw_radius()
             if ext_x > surface.half_x or ext_y > surface.half_y:
                 return False
             x = r.uniform(-surface.half_x + ext_x, surface.half_x - ext_x)
