@@ -69,7 +69,7 @@ def weighted_loss(out, seed: int = 7) -> torch.Tensor:
     total = 0.0
     for name in OUTPUTS:
         t = getattr(out, name)
-        total = total + (t * torch.randn(t.shape, generator=gen, dtype=t.dtype)).sum()
+        total = total + (t * torch.randn(t.shape, generator=gen).to(t.dtype)).sum()
     return total
 
 
@@ -137,6 +137,23 @@ class TestKernelAgainstReference:
         cy, cx = int(camera.K[1, 2]), int(camera.K[0, 2])
         assert 1.0 - 1e-3 < float(out_k.alpha[cy, cx].detach()) <= 1.0 - 1e-4 + 1e-6
 
+    def test_float64_inputs(self):
+        splats, camera, features = make_scene(12, n=40)
+        out32, g32 = run_backend(splats, camera, features, torch.zeros(3), "numba")
+        out64, g64 = run_backend(splats, camera, features, torch.zeros(3), "numba", dtype=torch.float64)
+        assert out64.features.dtype == torch.float64 and g64["means"].dtype == torch.float64
+        assert float((out64.features - out32.features.double()).detach().abs().max()) <= 1e-4
+        assert rel_err(g64["means"], g32["means"]) <= 1e-3
+
+    @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+    def test_cuda_tensors_round_trip(self):
+        splats, camera, features = make_scene(13, n=40)
+        cuda = Splats(*(t.cuda() for t in splats))
+        out = render(cuda, camera, features.cuda())
+        assert out.features.is_cuda and out.means2d.is_cuda
+        ref = render(splats, camera, features)
+        assert float((out.features.cpu() - ref.features).abs().max()) <= 1e-5
+
     def test_deterministic(self):
         splats, camera, features = make_scene(11)
         _, g1 = run_backend(splats, camera, features, torch.zeros(3), "numba")
@@ -200,6 +217,12 @@ class TestTrace:
         assert float((dense - by_backward).abs().max()) <= 1e-5
         assert float((dense - by_reference).abs().max()) <= 1e-4
         assert float((trace(splats, camera, labels, 6, backend="reference").to_dense() - by_reference).abs().max()) == 0
+
+    def test_many_labels(self):
+        splats, camera, _ = make_scene(7)
+        labels = torch.randint(0, 300, (camera.height, camera.width), generator=torch.Generator().manual_seed(5))
+        dense = trace(splats, camera, labels, 300).to_dense()
+        assert float((dense - trace_by_backward(splats, camera, labels, 300, backend="numba")).abs().max()) <= 1e-5
 
     def test_sums_per_pixel_to_alpha(self):
         splats, camera, features = make_scene(6, camera=make_camera(24, 18))
