@@ -4,16 +4,20 @@ Kernel boundary (small on purpose, so that a CUDA back end can slot in behind it
 kernels read
 
     geom [N, 16] float32: A (3), B (3), D (3) with c = A + x B + y D; T_w (3); means2d (2);
-                          opacity (1); level = ln(255 o) + slack (1, a conservative skip test)
+                          opacity (1); ln(255 o) (1, informational: pads a row to 64 bytes)
     vals [N, K]  float32: per-splat constant channels (features, then the normal)
 
-and produce per pixel the blended channels [H, W, K], sum w z, sum w z^2, the final transmittance
-and the median depth.  The backward returns gradients with respect to ``geom``'s first 15 columns
-and ``vals``; autograd carries them back through the torch projection to the 3D parameters.
+(rows gathered into tile-list order before the kernels run) and produce per pixel the blended
+channels [H, W, K], sum w z, sum w (z - z_ref)^2, the final transmittance and the median depth.
+The backward returns gradients with respect to ``geom``'s first 15 columns and ``vals``; autograd
+carries them back through the torch projection to the 3D parameters.
 
 Scheme (as in the CUDA rasterizers): splats are binned to 16x16 tiles (each tile's list in
 front-to-back order of centre depth, ties by index), a tile's pixels are blended front to back,
-splat by splat over the splat's footprint box inside the tile.  The backward walks each tile's list
+splat by splat: for each row of the splat's footprint box inside the tile, pass 1 evaluates all
+16 lanes of the row branch-free (vectorised, with :func:`exp_neg`), pass 2 blends the lanes inside
+the box.  Forward, backward and trace share :func:`eval_lane`, so they make bit-identical skip
+decisions.  The backward walks each tile's list
 back to front, recovering the transmittance by division and keeping, per pixel, the running
 "what comes after" dot product.  Tiles run in parallel (``prange``); gradients go to one buffer per
 worker chunk (tiles are dealt round-robin to chunks), summed afterwards: race-free and
@@ -23,7 +27,6 @@ deterministic.
 from __future__ import annotations
 
 import logging
-import math
 
 import numba
 import numpy as np
@@ -39,7 +42,7 @@ TILE = 16
 TILE_PIXELS = TILE * TILE
 GEOM_COLS = 16
 GEOM_GRAD_COLS = 15
-LEVEL_SLACK = 1e-3
+LEVEL_SLACK = 1e-3  # added to the informational ln(255 o) column
 # value-preserving fast-math flags only (no contraction, no reassociation, infinities allowed): the
 # forward, backward and trace kernels must make bit-identical skip decisions for a pair
 FASTMATH = {"nsz"}
@@ -687,6 +690,8 @@ class Binning:
         self.order = idx[np.argsort(depth, kind="stable")].astype(np.int64)
         self.offsets, self.lists = bin_tiles(self.boxes, self.order, self.tiles_x, self.tiles_y)
         self.entry_boxes = np.ascontiguousarray(self.boxes[self.lists].astype(np.int32))  # [E, 4]
+        log.debug("binned %d visible splats into %d tile entries over %dx%d tiles", idx.size,
+                  self.lists.size, self.tiles_x, self.tiles_y)
         self.pairs = None  # [tiles] pixel-splat pairs evaluated by the last forward
 
     def entry_geometry(self, geom: np.ndarray) -> np.ndarray:

@@ -26,10 +26,8 @@ unit ellipse; the two agree for the distant, sub-pixel disks the filter exists f
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import NamedTuple
 
-import numba
 import numpy as np
 import torch
 from numba import njit, prange
@@ -289,8 +287,3 @@ def pixel_centres(width: int, height: int, device: torch.device, dtype: torch.dt
     ys, xs = torch.meshgrid(torch.arange(height, device=device, dtype=dtype),
                             torch.arange(width, device=device, dtype=dtype), indexing="ij")
     return xs.reshape(-1) + 0.5, ys.reshape(-1) + 0.5
-
-
-def opacity_level(opacity: float) -> float:
-    """ln(255 o): sigma above this gives alpha < 1/255."""
-    return math.log(max(opacity, 1e-30) * 255.0)
