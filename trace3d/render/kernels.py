@@ -34,12 +34,33 @@ import torch
 from numba import njit, prange
 from torch import Tensor
 
+from ..errors import Trace3DError
 from .projection import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN, Projected
 
 log = logging.getLogger(__name__)
 
 TILE = 16
 TILE_PIXELS = TILE * TILE
+# field offsets in the forward kernel's flat tile buffer (compile-time constants: the vectoriser
+# must see the distances between fields)
+F_OPEN = np.uint64(1 * TILE_PIXELS)
+F_Z = np.uint64(2 * TILE_PIXELS)
+F_Z2 = np.uint64(3 * TILE_PIXELS)
+F_MED = np.uint64(4 * TILE_PIXELS)
+F_REF = np.uint64(5 * TILE_PIXELS)
+F_LAST = np.uint64(6 * TILE_PIXELS)
+F_MAT = np.uint64(7 * TILE_PIXELS)
+F_RA = np.uint64(8 * TILE_PIXELS)
+F_RZ = np.uint64(9 * TILE_PIXELS)
+F_RW = np.uint64(10 * TILE_PIXELS)
+F_ACC = np.uint64(11 * TILE_PIXELS)  # then one plane per channel (at least 8)
+F_ACC1 = np.uint64(12 * TILE_PIXELS)
+F_ACC2 = np.uint64(13 * TILE_PIXELS)
+F_ACC3 = np.uint64(14 * TILE_PIXELS)
+F_ACC4 = np.uint64(15 * TILE_PIXELS)
+F_ACC5 = np.uint64(16 * TILE_PIXELS)
+F_ACC6 = np.uint64(17 * TILE_PIXELS)
+F_ACC7 = np.uint64(18 * TILE_PIXELS)
 GEOM_COLS = 16
 GEOM_GRAD_COLS = 15
 LEVEL_SLACK = 1e-3  # added to the informational ln(255 o) column
@@ -160,6 +181,15 @@ def eval_lane(x, e0, e1, e2, b0, b1, b2, mx, dy2, opac, tw0, tw1, tw2, near32):
 def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, near):
     """Front-to-back blending of every tile.
 
+    Per (splat, tile row) both passes run over all 16 lanes of the row without branches, so that
+    they vectorise: pass 1 evaluates alpha and depth (alpha 0 outside the splat's footprint box),
+    pass 2 blends the lanes that are still open (pixels are independent for a fixed splat).  All
+    tile state lives in one flat float32 buffer indexed with unsigned integers at constant field
+    offsets: with one base pointer and no negative-index wrap-around the compiler can prove that
+    lanes never alias.  List positions are stored tile-relative (exact in float32 below 2^24; the
+    binning refuses longer tile lists).  The first 8 channels are accumulated inside pass 2 at fixed
+    plane offsets (vectorised); further channels take a scalar loop over the blended lanes.
+
     Args:
         egeom: [E, 16] float32 geometry per tile-list entry (``geom`` gathered by ``lists``);
         ebox: [E, 4] int32 footprint boxes per entry; lists: [E] int32 splat of each entry;
@@ -184,6 +214,14 @@ def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, ne
     pairs = np.zeros(n_tiles, np.int64)
     t_min = np.float32(TRANSMITTANCE_MIN)
     near32 = np.float32(near)
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    half = np.float32(0.5)
+    tp = TILE_PIXELS
+    # field offsets in the flat tile buffer: transmittance, open flag, sum w z, sum w dz^2,
+    # median z, reference z, last blended (tile-relative position + 1), median position
+    # (tile-relative, -1 none), the current row's alpha, z, w (at the row's pixels), then K
+    # channel planes
     for t in prange(n_tiles):
         start = offsets[t]
         end = offsets[t + 1]
@@ -194,26 +232,15 @@ def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, ne
         px1 = min(px0 + TILE, width)
         py1 = min(py0 + TILE, height)
         n_pix = (px1 - px0) * (py1 - py0)
-        trans = np.ones(TILE_PIXELS, np.float32)
-        done = np.zeros(TILE_PIXELS, np.bool_)
-        t_acc = np.zeros((TILE_PIXELS, k_ch), np.float32)
-        t_z = np.zeros(TILE_PIXELS, np.float32)
-        t_z2 = np.zeros(TILE_PIXELS, np.float32)
-        t_med = np.zeros(TILE_PIXELS, np.float32)
-        t_ref = np.zeros(TILE_PIXELS, np.float32)
-        t_last = np.zeros(TILE_PIXELS, np.int32)
-        t_med_at = np.full(TILE_PIXELS, -1, np.int32)
-        xs = np.empty(TILE, np.float32)
-        for i in range(TILE):
-            xs[i] = np.float32(px0 + i) + np.float32(0.5)
-        ra = np.zeros(TILE, np.float32)
-        rz = np.zeros(TILE, np.float32)
+        buf = np.zeros(F_ACC + max(k_ch, 8) * tp, np.float32)
+        buf[:2 * tp] = 1.0  # transmittance 1, open
+        buf[7 * tp:8 * tp] = -1.0  # no median yet
         n_done = 0
         visited = 0
         for j in range(start, end):
             g = lists[j]
-            x0 = max(ebox[j, 0], px0)
-            x1 = min(ebox[j, 2], px1)
+            lx0 = max(ebox[j, 0], px0) - px0
+            lx1 = min(ebox[j, 2], px1) - px0
             y0 = max(ebox[j, 1], py0)
             y1 = min(ebox[j, 3], py1)
             a0 = egeom[j, 0]
@@ -232,47 +259,82 @@ def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, ne
             my = egeom[j, 13]
             opac = egeom[j, 14]
             visited += (y1 - y0) * TILE
+            v0 = vals[g, 0] if k_ch > 0 else zero
+            v1 = vals[g, 1] if k_ch > 1 else zero
+            v2 = vals[g, 2] if k_ch > 2 else zero
+            v3 = vals[g, 3] if k_ch > 3 else zero
+            v4 = vals[g, 4] if k_ch > 4 else zero
+            v5 = vals[g, 5] if k_ch > 5 else zero
+            v6 = vals[g, 6] if k_ch > 6 else zero
+            v7 = vals[g, 7] if k_ch > 7 else zero
+            rel = np.float32(j - start)
+            rel1 = np.float32(j - start + 1)
             for py in range(y0, y1):
-                y = np.float32(py) + np.float32(0.5)
+                y = np.float32(py) + half
                 e0 = a0 + d0 * y
                 e1 = a1 + d1 * y
                 e2 = a2 + d2 * y
                 dy = y - my
                 dy2 = dy * dy
-                # pass 1: all 16 lanes of the row, branch-free (vectorised)
+                row = np.uint64((py - py0) * TILE)
+                # pass 1: alpha (0 outside the footprint box) and depth of every lane
                 for i in range(TILE):
-                    al, zz, _, _, _, _, _ = eval_lane(xs[i], e0, e1, e2, b0, b1, b2, mx, dy2, opac,
+                    p = row + np.uint64(i)
+                    x = np.float32(px0 + i) + half
+                    al, zz, _, _, _, _, _ = eval_lane(x, e0, e1, e2, b0, b1, b2, mx, dy2, opac,
                                                      tw0, tw1, tw2, near32)
-                    ra[i] = al
-                    rz[i] = zz
-                # pass 2: blend the pixels of the footprint that were kept
-                row = (py - py0) * TILE
-                for px in range(x0 - px0, x1 - px0):
-                    alpha = ra[px]
-                    if alpha == np.float32(0.0):
-                        continue
-                    p = row + px
-                    if done[p]:
-                        continue
-                    t_next = trans[p] * (np.float32(1.0) - alpha)
-                    if t_next < t_min:
-                        done[p] = True
-                        n_done += 1
-                        continue
-                    w = alpha * trans[p]
-                    z = rz[px]
-                    for ch in range(k_ch):
-                        t_acc[p, ch] += w * vals[g, ch]
-                    if t_last[p] == 0:
-                        t_ref[p] = z
-                    dz = z - t_ref[p]
-                    t_z[p] += w * z
-                    t_z2[p] += w * dz * dz
-                    if trans[p] > np.float32(0.5):
-                        t_med[p] = z
-                        t_med_at[p] = j
-                    trans[p] = t_next
-                    t_last[p] = j + 1
+                    inside = (i >= lx0) & (i < lx1)
+                    buf[F_RA + p] = al if inside else zero
+                    buf[F_RZ + p] = zz
+                # pass 2: blend every open lane (selects, no branches)
+                finished = 0
+                for i in range(TILE):
+                    p = row + np.uint64(i)
+                    alpha = buf[F_RA + p]
+                    z = buf[F_RZ + p]
+                    tr = buf[p]
+                    open_p = buf[F_OPEN + p]
+                    live = (alpha > zero) & (open_p > zero)
+                    t_next = tr * (one - alpha)
+                    stop = live & (t_next < t_min)
+                    blend = live & (t_next >= t_min)
+                    w = alpha * tr if blend else zero
+                    last_p = buf[F_LAST + p]
+                    mat_p = buf[F_MAT + p]
+                    med_p = buf[F_MED + p]
+                    ref_p = buf[F_REF + p]
+                    ref = z if blend & (last_p == zero) else ref_p
+                    dz = z - ref
+                    med = blend & (tr > half)
+                    buf[F_RW + p] = w
+                    # the first 8 channels at compile-time plane offsets (zero values past K)
+                    buf[F_ACC + p] += w * v0
+                    buf[F_ACC1 + p] += w * v1
+                    buf[F_ACC2 + p] += w * v2
+                    buf[F_ACC3 + p] += w * v3
+                    buf[F_ACC4 + p] += w * v4
+                    buf[F_ACC5 + p] += w * v5
+                    buf[F_ACC6 + p] += w * v6
+                    buf[F_ACC7 + p] += w * v7
+                    buf[p] = t_next if blend else tr
+                    buf[F_OPEN + p] = zero if stop else open_p
+                    buf[F_Z + p] += w * z
+                    buf[F_Z2 + p] += w * dz * dz
+                    buf[F_MED + p] = z if med else med_p
+                    buf[F_REF + p] = ref
+                    buf[F_LAST + p] = rel1 if blend else last_p
+                    buf[F_MAT + p] = rel if med else mat_p
+                    finished += np.int64(stop)
+                n_done += finished
+                # channels beyond the first 8 (planes after the 8 fixed ones): scalar, blended
+                # lanes only
+                if k_ch > 8:
+                    for i in range(lx0, lx1):
+                        p = row + np.uint64(i)
+                        w = buf[F_RW + p]
+                        if w != zero:
+                            for ch in range(8, k_ch):
+                                buf[F_ACC + np.uint64(ch * TILE_PIXELS) + p] += w * vals[g, ch]
             if n_done == n_pix:
                 break
         pairs[t] = visited
@@ -280,14 +342,16 @@ def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, ne
             for px in range(px0, px1):
                 p = (py - py0) * TILE + (px - px0)
                 for ch in range(k_ch):
-                    acc[py, px, ch] = t_acc[p, ch]
-                acc_z[py, px] = t_z[p]
-                acc_z2[py, px] = t_z2[p]
-                final_t[py, px] = trans[p]
-                median_z[py, px] = t_med[p]
-                depth_ref[py, px] = t_ref[p]
-                last[py, px] = t_last[p]
-                median_at[py, px] = t_med_at[p]
+                    acc[py, px, ch] = buf[F_ACC + ch * tp + p]
+                final_t[py, px] = buf[p]
+                acc_z[py, px] = buf[2 * tp + p]
+                acc_z2[py, px] = buf[3 * tp + p]
+                median_z[py, px] = buf[4 * tp + p]
+                depth_ref[py, px] = buf[5 * tp + p]
+                lp = np.int64(buf[6 * tp + p])
+                last[py, px] = start + lp if lp > 0 else 0
+                mp = np.int64(buf[7 * tp + p])
+                median_at[py, px] = start + mp if mp >= 0 else -1
     return acc, acc_z, acc_z2, final_t, median_z, depth_ref, last, median_at, pairs
 
 
@@ -690,6 +754,10 @@ class Binning:
         self.order = idx[np.argsort(depth, kind="stable")].astype(np.int64)
         self.offsets, self.lists = bin_tiles(self.boxes, self.order, self.tiles_x, self.tiles_y)
         self.entry_boxes = np.ascontiguousarray(self.boxes[self.lists].astype(np.int32))  # [E, 4]
+        longest = int(np.diff(self.offsets).max()) if self.offsets.size > 1 else 0
+        if longest >= 1 << 24:
+            raise Trace3DError(f"render: a 16x16 tile holds {longest} splats; the CPU kernels support "
+                               f"fewer than {1 << 24} per tile.")
         log.debug("binned %d visible splats into %d tile entries over %dx%d tiles", idx.size,
                   self.lists.size, self.tiles_x, self.tiles_y)
         self.pairs = None  # [tiles] pixel-splat pairs evaluated by the last forward
