@@ -86,6 +86,7 @@ def tiny_params(**overrides) -> TrainParams:
     values = dict(
         schedule_scale=1.0, iterations=200, densify_from=50, densify_until=150, densify_interval=25,
         opacity_reset_interval=1000, normal_from=100, sh_degree_interval=50, sh_degree=1, device="cpu",
+        densify_grad_threshold=0.0002,
     )
     values.update(overrides)
     return TrainParams(**values)
@@ -187,10 +188,11 @@ def test_exponential_lr_endpoints_and_monotone():
 
 
 def test_schedule_scaling_and_reference_defaults():
-    ref = TrainParams(schedule_scale=1.0).schedule()
+    ref = TrainParams.reference_2dgs().schedule()
     assert ref == {"iterations": 30000, "densify_from": 500, "densify_until": 15000, "densify_interval": 100,
                    "opacity_reset_interval": 3000, "sh_degree_interval": 1000, "normal_from": 7000,
                    "distortion_from": 3000, "checkpoint_interval": 1000}
+    assert TrainParams.reference_2dgs().densify_grad_threshold == 0.0002
     half = TrainParams(schedule_scale=0.5).schedule()
     assert half["iterations"] == 15000 and half["densify_interval"] == 50
     assert TrainParams(schedule_scale=1e-4).scaled("densify_interval") == 1  # never 0
