@@ -500,6 +500,7 @@ def fit(
     params: TrainParams,
     extent: float | None = None,
     progress: bool = True,
+    callback: Callable[[int, "GaussianOptimizer"], None] | None = None,
 ) -> TrainResult:
     """Optimise ``model`` on the training views.
 
@@ -510,6 +511,7 @@ def fit(
         params: training parameters (the schedule is scaled by ``params.schedule_scale``).
         extent: scene extent for the learning rate and size thresholds (default: from the cameras).
         progress: show a tqdm bar.
+        callback: called as ``callback(iteration, state)`` after every logged iteration (monitoring).
     Returns:
         a :class:`TrainResult`.
     Raises:
@@ -527,14 +529,15 @@ def fit(
     np.finfo(np.float32), np.finfo(np.float64)  # compute numpy's float limits before flushing denormals
     flushing = params.flush_denormals and torch.set_flush_denormal(True)
     try:
-        return _fit_loop(model, cameras, images, params, extent, progress, device)
+        return _fit_loop(model, cameras, images, params, extent, progress, device, callback)
     finally:
         if flushing:
             torch.set_flush_denormal(False)
 
 
 def _fit_loop(model: GaussianModel, cameras: Sequence[Camera], images: list[torch.Tensor], params: TrainParams,
-              extent: float, progress: bool, device: torch.device) -> TrainResult:
+              extent: float, progress: bool, device: torch.device,
+              callback: Callable[[int, "GaussianOptimizer"], None] | None) -> TrainResult:
     schedule = params.schedule()
     generator = torch.Generator().manual_seed(params.seed)
     rng = np.random.default_rng(params.seed)
@@ -618,6 +621,8 @@ def _fit_loop(model: GaussianModel, cameras: Sequence[Camera], images: list[torc
             sums = dict.fromkeys(sums, 0.0)
             sums_count = 0
             bar.set_postfix(loss=f"{row['loss']:.4f}", psnr=f"{row['psnr']:.2f}", n=len(state))
+            if callback is not None:
+                callback(iteration, state)
     bar.close()
     seconds = time.perf_counter() - start
     trained = state.model.detached_copy()
