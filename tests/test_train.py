@@ -23,6 +23,7 @@ from trace3d.train import (
     exponential_lr,
     failed_dir_for,
     fit,
+    points_extent,
     run_gaussians,
     scene_extent,
     split_gaussians,
@@ -214,6 +215,10 @@ def test_scene_extent():
     cams[1].world_to_camera[0, 3] = -2.0  # centre at x = 2
     assert scene_extent(cams) == pytest.approx(1.1)
     assert scene_extent(cams[:1]) == 1.0
+    # inside-out: points on a sphere of radius 3 around the camera centroid (1, 0, 0)
+    dirs = torch.nn.functional.normalize(torch.randn(501, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
+    points = dirs * 3.0 + torch.tensor([1.0, 0.0, 0.0])
+    assert points_extent(points, cams) == pytest.approx(3.3, rel=1e-5)
 
 
 # ----------------------------------------------------------------------------------------------

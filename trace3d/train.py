@@ -95,6 +95,11 @@ class TrainParams:
     depth_init_stride: int = 4
     random_init_count: int = 100_000
     random_init_margin: float = 0.5  # random box = camera-centre box grown by this x extent
+    # Scene extent (scales the position learning rate, the clone/split size and the world-size
+    # prune). "cameras" is the 3DGS/2DGS rule (1.1 x the camera centres' radius), which is tiny for
+    # inside-out captures (a room seen from a small loop); "auto" takes the larger of it and 1.1 x
+    # the median distance of the initial Gaussians from the camera centroid.
+    extent: Literal["cameras", "auto"] = "cameras"
     # --- learning rates (2DGS) ------------------------------------------------------------------
     position_lr_init: float = 0.00016
     position_lr_final: float = 0.0000016
@@ -211,6 +216,12 @@ def exponential_lr(step: int, lr_init: float, lr_final: float, max_steps: int) -
         return 0.0
     t = min(max(step / max(max_steps, 1), 0.0), 1.0)
     return math.exp(math.log(lr_init) * (1.0 - t) + math.log(lr_final) * t)
+
+
+def points_extent(points: torch.Tensor, cameras: Sequence[Camera]) -> float:
+    """1.1 x the median distance of ``points`` [P, 3] from the centroid of the camera centres."""
+    centroid = torch.as_tensor(np.stack([c.center for c in cameras]).mean(axis=0), dtype=points.dtype)
+    return float((points.detach().cpu() - centroid).norm(dim=-1).median()) * 1.1
 
 
 def scene_extent(cameras: Sequence[Camera]) -> float:
@@ -845,6 +856,9 @@ def run_gaussians(scene: Scene, poses_dir: Path | None, out_dir: Path, params: d
         raise SceneFormatError(f"{scene.root}: the scene has no train views to fit.")
     extent = scene_extent(train_cameras)
     model, init_method = initial_model(scene, Path(poses_dir) if poses_dir is not None else None, train_cameras, p, extent)
+    if p.extent == "auto":
+        extent = max(extent, points_extent(model.means, train_cameras))
+    log.info("scene extent %.3f (%s)", extent, p.extent)
     train_images = load_images(scene, train_cameras)
     log.info("fitting 2DGS to %d train views (%d test views), schedule %s", len(train_cameras), len(test_cameras), p.schedule())
 
