@@ -8,6 +8,7 @@ STAMP  := $(VENV)/.installed
 
 # Numba's compile cache lives inside the checkout, so only the first run in a clone compiles.
 export NUMBA_CACHE_DIR := $(CURDIR)/.numba_cache
+export OMP_WAIT_POLICY := PASSIVE
 export PATH := $(CURDIR)/$(BIN):$(PATH)
 
 .PHONY: setup reproduce test lint dry-run clean-results

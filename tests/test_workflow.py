@@ -62,13 +62,22 @@ def test_dry_run_default_config():
         assert f"scene={scene}" in result.stdout
 
 
+TINY_TRAINING = {"schedule_scale": 1.0, "iterations": 40, "densify_from": 10, "densify_until": 30,
+                 "densify_interval": 10, "normal_from": 20, "sh_degree": 1, "sh_degree_interval": 20,
+                 "device": "cpu"}
 TINY_SYNTHETIC = {"width": 48, "height": 36, "num_views": 6, "test_every": 3, "num_objects": 10, "supersample": 1}
 
 
 @pytest.mark.slow
 def test_end_to_end_tiny(tmp_path):
     config = {
-        "defaults": {"synthetic": TINY_SYNTHETIC},
+        "defaults": {
+            "synthetic": TINY_SYNTHETIC,
+            # six views 60 degrees apart do not overlap enough for SfM (tests/test_sfm.py covers COLMAP)
+            "poses": {"mode": "dataset"},
+            "masks": {"source": "simulated", "simulated": {"inconsistency": 0.5}},
+            "gaussians": TINY_TRAINING,
+        },
         "scenes": {"a": {"kind": "synthetic", "synthetic": {"seed": 1}},
                    "b": {"kind": "synthetic", "synthetic": {"seed": 2}}},
     }
@@ -80,6 +89,13 @@ def test_end_to_end_tiny(tmp_path):
         assert (root / "preview.png").stat().st_size > 1000
         assert (tmp_path / "results" / "logs" / scene / "scene.log").is_file()
         assert (tmp_path / "results" / "benchmarks" / scene / "scene.tsv").is_file()
+        for step in ("poses", "masks", "patches", "gaussians"):
+            assert (tmp_path / "results" / scene / step).is_dir(), step
+        assert len(list((tmp_path / "results" / scene / "patches").glob("*.png"))) >= 6
+        assert (tmp_path / "results" / scene / "gaussians" / "point_cloud.ply").is_file()
+    reconstruction = (tmp_path / "results" / "reconstruction.md").read_text()
+    assert "| a " in reconstruction and "| mean " in reconstruction
+    assert (tmp_path / "results" / "plots" / "reconstruction.png").stat().st_size > 1000
     table = (tmp_path / "results" / "scenes.md").read_text()
     assert "| a " in table and "| b " in table and "48x36" in table
     # nothing left to do: a second run is a no-op
