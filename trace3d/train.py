@@ -39,6 +39,7 @@ import json
 import logging
 import math
 import re
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -575,7 +576,9 @@ def _fit_loop(model: GaussianModel, cameras: Sequence[Camera], images: list[torc
     sums = {"loss": 0.0, "l1": 0.0, "ssim": 0.0, "normal": 0.0, "distortion": 0.0, "psnr": 0.0}
     sums_count = 0
     iterations = schedule["iterations"]
-    bar = tqdm(range(1, iterations + 1), desc="2DGS fit", disable=not progress, dynamic_ncols=True, leave=False)
+    interactive = sys.stderr.isatty()
+    bar = tqdm(range(1, iterations + 1), desc="2DGS fit", disable=not progress, dynamic_ncols=True, leave=False,
+               mininterval=0.5 if interactive else 30.0)  # log files get a line every 30 s
     for iteration in bar:
         state.set_position_lr(exponential_lr(iteration, params.position_lr_init * extent,
                                              params.position_lr_final * extent, iterations))
