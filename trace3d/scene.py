@@ -398,14 +398,7 @@ class Scene:
         cams_path = root / "cameras.json"
         if not cams_path.is_file():
             raise SceneFormatError(f"{cams_path}: cameras.json is missing.")
-        try:
-            data = json.loads(cams_path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise SceneFormatError(f"{cams_path}: not valid JSON ({exc}).") from exc
-        frames = data.get("frames") if isinstance(data, dict) else None
-        if not isinstance(frames, list) or not frames:
-            raise SceneFormatError(f"{cams_path}: expected a non-empty 'frames' list.")
-        cameras = [camera_from_json(f, str(cams_path)) for f in frames]
+        cameras = read_cameras(cams_path)
         names = [c.name for c in cameras]
         if len(set(names)) != len(names):
             raise SceneFormatError(f"{cams_path}: frame names are not unique.")
@@ -458,6 +451,21 @@ class Scene:
             write_json(self.root / "objects.json", self.objects.to_json())
         if self.meta:
             write_json(self.root / "meta.json", self.meta)
+
+
+def read_cameras(path: str | Path) -> list[Camera]:
+    """Parse and validate a ``cameras.json`` file (the scene's, or a poses step's)."""
+    path = Path(path)
+    if not path.is_file():
+        raise SceneFormatError(f"{path}: cameras.json is missing.")
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise SceneFormatError(f"{path}: not valid JSON ({exc}).") from exc
+    frames = data.get("frames") if isinstance(data, dict) else None
+    if not isinstance(frames, list) or not frames:
+        raise SceneFormatError(f"{path}: expected a non-empty 'frames' list.")
+    return [camera_from_json(f, str(path)) for f in frames]
 
 
 def write_cameras(root: str | Path, cameras: Iterable[Camera]) -> None:
