@@ -29,6 +29,20 @@ from trace3d.train import (
     split_gaussians,
 )
 
+@pytest.fixture(autouse=True)
+def single_thread():
+    """Tiny scenes run fastest on one thread, and stay fast on a busy shared machine (parallel
+    regions of two threads stall whenever one of them is descheduled)."""
+    import numba
+
+    torch_threads, numba_threads = torch.get_num_threads(), numba.get_num_threads()
+    torch.set_num_threads(1)
+    numba.set_num_threads(1)
+    yield
+    torch.set_num_threads(torch_threads)
+    numba.set_num_threads(numba_threads)
+
+
 # ----------------------------------------------------------------------------------------------
 # A tiny scene: a smoothly textured plane z = 3 seen by cameras on a small circle (exact images)
 # ----------------------------------------------------------------------------------------------
