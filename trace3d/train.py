@@ -33,6 +33,7 @@ the temporary output folder on error) and says so in the error message.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import json
@@ -554,15 +555,24 @@ def fit(
     images = [img.to(device=device, dtype=torch.float32) for img in images]
     np.finfo(np.float32), np.finfo(np.float64)  # compute numpy's float limits before flushing denormals
     flushing = params.flush_denormals and torch.set_flush_denormal(True)
-    previous_threads = torch.get_num_threads()
-    if params.torch_threads > 0:
-        torch.set_num_threads(params.torch_threads)
     try:
-        return _fit_loop(model, cameras, images, params, extent, progress, device, callback)
+        with torch_threads(params.torch_threads):
+            return _fit_loop(model, cameras, images, params, extent, progress, device, callback)
     finally:
         if flushing:
             torch.set_flush_denormal(False)
-        torch.set_num_threads(previous_threads)
+
+
+@contextlib.contextmanager
+def torch_threads(count: int):
+    """Run the block with ``count`` torch intra-op threads (0: unchanged), restoring the setting after."""
+    previous = torch.get_num_threads()
+    if count > 0:
+        torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
 
 
 def _fit_loop(model: GaussianModel, cameras: Sequence[Camera], images: list[torch.Tensor], params: TrainParams,
@@ -902,8 +912,9 @@ def run_gaussians(scene: Scene, poses_dir: Path | None, out_dir: Path, params: d
     device = result.model.device
     background = torch.tensor(p.background, dtype=torch.float32, device=device)
     test_images = load_images(scene, test_cameras)
-    test_rows, test_renders = evaluate_views(result.model, test_cameras, test_images, p.sh_degree, background, p.near)
-    train_rows, _ = evaluate_views(result.model, train_cameras, train_images, p.sh_degree, background, p.near)
+    with torch_threads(p.torch_threads):
+        test_rows, test_renders = evaluate_views(result.model, test_cameras, test_images, p.sh_degree, background, p.near)
+        train_rows, _ = evaluate_views(result.model, train_cameras, train_images, p.sh_degree, background, p.near)
     minutes = (time.perf_counter() - start) / 60.0
 
     result.model.write_ply(out_dir / "point_cloud.ply")
