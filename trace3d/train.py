@@ -660,7 +660,7 @@ def _fit_loop(model: GaussianModel, cameras: Sequence[Camera], images: list[torc
             history.append(row)
             sums = dict.fromkeys(sums, 0.0)
             sums_count = 0
-            bar.set_postfix(loss=f"{row['loss']:.4f}", psnr=f"{row['psnr']:.2f}", n=len(state))
+            bar.set_postfix(loss=f"{row['loss']:.4f}", psnr=f"{row['psnr']:.2f}", n=len(state), refresh=False)
             if callback is not None:
                 callback(iteration, state)
     bar.close()
