@@ -60,7 +60,7 @@ from .gaussians import (
 from .io import write_json
 from .losses import depth_to_normal, normal_consistency_loss, photometric_loss, psnr, ssim
 from .params import from_mapping, to_dict
-from .scene import Camera, Scene, camera_from_json
+from .scene import Camera, Scene, read_cameras
 
 log = logging.getLogger(__name__)
 
@@ -711,17 +711,7 @@ def read_pose_cameras(poses_dir: Path, scene: Scene) -> list[Camera]:
     path = poses_dir / "cameras.json"
     if not path.is_file():
         raise SceneFormatError(f"{path}: poses cameras.json is missing.")
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise SceneFormatError(f"{path}: not valid JSON ({exc}).") from exc
-    frames = data.get("frames") if isinstance(data, dict) else None
-    if not isinstance(frames, list) or not frames:
-        raise SceneFormatError(f"{path}: expected a non-empty 'frames' list.")
-    by_name = {}
-    for entry in frames:
-        cam = camera_from_json(entry, str(path))
-        by_name[cam.name] = cam
+    by_name = {cam.name: cam for cam in read_cameras(path)}
     unknown = sorted(set(by_name) - {c.name for c in scene.cameras})
     if unknown:
         raise SceneFormatError(f"{path}: frames {unknown[:5]} are not in the scene {scene.root}.")
