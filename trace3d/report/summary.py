@@ -90,7 +90,7 @@ def write_reconstruction_table(
             f"reconstruction table: {len(poses_dirs)} poses folders but {len(gaussians_dirs)} gaussians folders."
         )
     table = pd.DataFrame([reconstruction_row(Path(p), Path(g)) for p, g in zip(poses_dirs, gaussians_dirs)])
-    mean = {"scene": "mean"}
+    mean = {"scene": "mean", "poses": "", "registered": ""}
     for col in ("pose error (% extent)", "rotation error (deg)", "gaussians", "PSNR", "SSIM", "train PSNR", "minutes"):
         values = pd.to_numeric(table[col], errors="coerce")
         mean[col] = round(float(values.mean()), 3) if values.notna().any() else None
