@@ -40,7 +40,7 @@ from tqdm import tqdm
 from ..errors import Trace3DError
 from ..io import atomic_file, write_json
 from ..params import from_mapping, to_dict
-from ..scene import Camera, write_cameras, write_rgb
+from ..scene import Camera, read_rgb, write_cameras, write_rgb
 from .replica import downscale_rgb, rigid_inverse, scale_intrinsics
 
 log = logging.getLogger(__name__)
@@ -150,13 +150,6 @@ def list_images(folder: Path) -> list[Path]:
     return files
 
 
-def _read_rgb(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise Trace3DError(f"{path}: image is corrupt or not an image.")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-
-
 @dataclasses.dataclass
 class _LLFFFrame:
     name: str
@@ -210,7 +203,7 @@ def _write_llff_frames(frames: list[_LLFFFrame], splits: dict[str, str], out_dir
     scale = 1.0
     size = None
     for frame in tqdm(frames, desc=desc, unit="frame"):
-        rgb = _read_rgb(frame.path)
+        rgb = read_rgb(frame.path)
         if size is None:
             size = rgb.shape[:2]
         elif rgb.shape[:2] != size:

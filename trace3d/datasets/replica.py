@@ -46,7 +46,7 @@ from tqdm import tqdm
 from ..errors import SceneFormatError, Trace3DError
 from ..io import write_json
 from ..params import from_mapping, to_dict
-from ..scene import Camera, ObjectTable, SceneObject, write_cameras, write_rgb, write_u16
+from ..scene import Camera, ObjectTable, SceneObject, read_rgb, write_cameras, write_rgb, write_u16
 
 log = logging.getLogger(__name__)
 
@@ -335,15 +335,6 @@ def _read_u16_or_u8(path: Path, what: str) -> np.ndarray:
     return img
 
 
-def _read_rgb(path: Path) -> np.ndarray:
-    if not path.is_file():
-        raise Trace3DError(f"{path}: RGB image is missing.")
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise Trace3DError(f"{path}: RGB image is corrupt or not an image.")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-
-
 def _check_layout(seq: Path) -> None:
     for sub in ("rgb", "depth"):
         if not (seq / sub).is_dir():
@@ -415,7 +406,7 @@ def import_replica(source: Path, out_dir: Path, params: ReplicaParams) -> None:
     class_votes: dict[tuple[int, int], int] = {}
     size = None
     for index, split in tqdm(frames, desc=f"replica {scene_folder}", unit="frame"):
-        rgb = _read_rgb(seq / "rgb" / f"rgb_{index}.png")
+        rgb = read_rgb(seq / "rgb" / f"rgb_{index}.png")
         depth = _read_u16_or_u8(seq / "depth" / f"depth_{index}.png", "depth map")
         inst = _read_u16_or_u8(seq / "semantic_instance" / f"semantic_instance_{index}.png", "instance map")
         if depth.dtype != np.uint16:
