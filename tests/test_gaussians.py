@@ -278,3 +278,77 @@ def test_read_ply_errors(tmp_path):
 def test_rgb_to_sh_constant():
     assert float(rgb_to_sh(torch.tensor(0.5))) == 0.0
     assert abs(float(rgb_to_sh(torch.tensor(1.0))) * SH_C0 - 0.5) < 1e-7
+
+
+# ----------------------------------------------------------------------------------------------
+# Extensible attributes: extras follow subsets, splits, optimiser edits and the PLY
+# ----------------------------------------------------------------------------------------------
+
+
+def model_with_extras(n: int = 5) -> GaussianModel:
+    g = torch.Generator().manual_seed(3)
+    return GaussianModel(
+        means=torch.randn(n, 3, generator=g), quats=torch.randn(n, 4, generator=g),
+        log_scales=torch.randn(n, 2, generator=g) - 3, opacity_logits=torch.randn(n, generator=g),
+        sh_dc=torch.randn(n, 1, 3, generator=g), sh_rest=torch.randn(n, 3, 3, generator=g),
+        extras={"features": torch.randn(n, 16, generator=g), "generation": torch.arange(n, dtype=torch.float32)},
+    )
+
+
+def test_extras_round_trip_through_ply(tmp_path):
+    model = model_with_extras()
+    model.write_ply(tmp_path / "m.ply")
+    back = GaussianModel.read_ply(tmp_path / "m.ply")
+    assert list(back.extras) == ["features", "generation"]
+    assert back.extras["features"].shape == (5, 16) and back.extras["generation"].shape == (5,)
+    for name in model.names:
+        torch.testing.assert_close(back.get(name), model.get(name))
+    header = (tmp_path / "m.ply").read_bytes().split(b"end_header")[0].decode()
+    assert "property float extra_features_15" in header and "property float extra_generation\n" in header
+
+
+def test_extras_follow_subset_and_split():
+    from trace3d.training import split_gaussians
+
+    model = model_with_extras()
+    sub = model.subset(torch.tensor([False, True, False, True, False]))
+    torch.testing.assert_close(sub.extras["generation"], torch.tensor([1.0, 3.0]))
+    children = split_gaussians(sub, 2, torch.Generator().manual_seed(0), scale_divisor=2.0)
+    torch.testing.assert_close(children.extras["generation"], torch.tensor([1.0, 3.0, 1.0, 3.0]))
+    torch.testing.assert_close(children.extras["features"], sub.extras["features"].repeat(2, 1))
+    torch.testing.assert_close(children.scales, sub.scales.repeat(2, 1) / 2.0)
+
+
+def test_optimizer_edits_carry_extras_and_statistics():
+    from trace3d.training import GaussianOptimizer, TrainParams, learning_rates
+
+    model = model_with_extras()
+    params = TrainParams()
+    lrs = {**learning_rates(params, 1.0), "features": 0.01}
+    state = GaussianOptimizer(model, lrs, params, 1.0)
+    assert isinstance(state.model.extras["features"], torch.nn.Parameter)
+    assert not isinstance(state.model.extras["generation"], torch.nn.Parameter)  # no lr: carried along
+    stat = state.add_statistic("seen", fill=-1.0)
+    stat += 2.0
+    state.append(model.subset(torch.tensor([0, 1])))
+    assert len(state) == 7
+    torch.testing.assert_close(state.statistics["seen"], torch.tensor([1.0] * 5 + [-1.0] * 2))
+    torch.testing.assert_close(state.model.extras["generation"], torch.tensor([0.0, 1, 2, 3, 4, 0, 1]))
+    state.keep(torch.tensor([True, False, True, False, True, True, False]))
+    torch.testing.assert_close(state.model.extras["generation"], torch.tensor([0.0, 2, 4, 0]))
+    assert state.statistics["seen"].shape == (4,)
+    # the optimiser still steps the features
+    state.model.extras["features"].grad = torch.ones(4, 16)
+    before = state.model.extras["features"].detach().clone()
+    state.step()
+    assert bool((state.model.extras["features"] < before).all())
+    group = next(g for g in state.optimizer.param_groups if g["name"] == "features")
+    assert group["params"][0] is state.model.extras["features"]
+
+
+def test_bad_extras_are_refused(tmp_path):
+    model = model_with_extras()
+    with pytest.raises(ValueError, match="extra 'bad'"):
+        model.set("bad", torch.zeros(4))
+    with pytest.raises(ValueError, match="_<digits>"):
+        model.set("level_2", torch.zeros(5))

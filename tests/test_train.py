@@ -1,4 +1,4 @@
-"""Tests of trace3d.losses and trace3d.train: losses, density control, the loop and the step."""
+"""Tests of trace3d.losses and trace3d.training: losses, density control, the loop and the step."""
 
 from __future__ import annotations
 
@@ -15,8 +15,10 @@ from trace3d.losses import _ssim_map_reference, depth_to_normal, depth_to_points
 from trace3d.params import from_mapping
 from trace3d.pointcloud import write_points_ply
 from trace3d.scene import Camera, Scene, write_cameras, write_frame
-from trace3d.train import (
+from trace3d.training import (
     GaussianOptimizer,
+    densify_and_prune,
+    learning_rates,
     TrainingDiverged,
     TrainParams,
     evaluate_views,
@@ -255,15 +257,22 @@ def constructed_model() -> GaussianModel:
     )
 
 
+def densify_stats(state: GaussianOptimizer) -> None:
+    from trace3d.training.strategy import reset_stats
+
+    reset_stats(state)
+
+
 def constructed_state(**overrides) -> GaussianOptimizer:
     # extent 1: clone when max scale <= 0.01, split above; world-size prune above 0.1
     params = tiny_params(**overrides)
-    state = GaussianOptimizer(constructed_model(), params, extent=1.0)
+    state = GaussianOptimizer(constructed_model(), learning_rates(params, 1.0), params, extent=1.0)
+    densify_stats(state)
     # mean NDC gradients: hot = 1e-3 (above 2e-4), cold = 1e-5; seen by 2 views
     hot = torch.tensor([1e-3, 1e-3, 1e-5, 1e-5, 1e-5, 1e-5])
-    state.grad_accum = hot * 2
-    state.grad_count = torch.full((6,), 2.0)
-    state.max_radii = torch.tensor([1.0, 5.0, 1.0, 1.0, 4.0, 30.0])  # the last is too large on screen
+    state.statistics["grad_accum"] = hot * 2
+    state.statistics["grad_count"] = torch.full((6,), 2.0)
+    state.statistics["max_radii"] = torch.tensor([1.0, 5.0, 1.0, 1.0, 4.0, 30.0])  # the last is too large on screen
     # give Adam moments we can follow through the edits
     for group in state.optimizer.param_groups:
         param = group["params"][0]
@@ -278,7 +287,7 @@ def constructed_state(**overrides) -> GaussianOptimizer:
 def test_densify_clones_splits_and_prunes_without_size_limits():
     state = constructed_state()
     before = state.model.detached_copy()
-    event = state.densify_and_prune(use_size_limits=False, generator=torch.Generator().manual_seed(0))
+    event = densify_and_prune(state, use_size_limits=False, generator=torch.Generator().manual_seed(0))
     assert event == {"cloned": 1, "split": 1, "pruned": 1, "total": 7}
     ids = state.model.sh_dc[:, 0, 0].round().long().tolist()
     # originals except the split (1) and the transparent (3) one, then the clone of 0, then 2 children of 1
@@ -298,12 +307,12 @@ def test_densify_clones_splits_and_prunes_without_size_limits():
         assert group["params"][0] is getattr(state.model, group["name"])
         assert state.optimizer.state[group["params"][0]]["exp_avg"].shape == group["params"][0].shape
     # statistics are reset
-    assert state.grad_accum.shape == (7,) and float(state.grad_accum.abs().sum()) == 0.0
+    assert state.statistics["grad_accum"].shape == (7,) and float(state.statistics["grad_accum"].abs().sum()) == 0.0
 
 
 def test_densify_size_limits_prune_huge_and_screen_large():
     state = constructed_state()
-    event = state.densify_and_prune(use_size_limits=True, generator=torch.Generator().manual_seed(0))
+    event = densify_and_prune(state, use_size_limits=True, generator=torch.Generator().manual_seed(0))
     # also pruned: 4 (world size 0.5 > 0.1 x extent) and 5 (30 px > 20 px on screen)
     assert event["pruned"] == 3
     assert state.model.sh_dc[:, 0, 0].round().long().tolist() == [0, 2, 0, 1, 1]
@@ -311,10 +320,10 @@ def test_densify_size_limits_prune_huge_and_screen_large():
 
 def test_densify_respects_opacity_grace_and_growth_cap():
     state = constructed_state()
-    event = state.densify_and_prune(use_size_limits=False, prune_by_opacity=False)
+    event = densify_and_prune(state, use_size_limits=False, prune_by_opacity=False)
     assert event["pruned"] == 0 and event["total"] == 8
     capped = constructed_state(max_gaussians=7)  # room for one more: the clone (same gradient; cheaper first)
-    event = capped.densify_and_prune(use_size_limits=False)
+    event = densify_and_prune(capped, use_size_limits=False)
     assert event["cloned"] + event["split"] == 1 and len(capped) <= 7
 
 

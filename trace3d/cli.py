@@ -115,7 +115,7 @@ def _cmd_gaussians(args: argparse.Namespace) -> None:
     from .scene import Scene
 
     scene = Scene.read(args.scene)
-    from .train import run_gaussians
+    from .training import run_gaussians
 
     with atomic_dir(args.out) as tmp:
         run_gaussians(scene, Path(args.poses) if args.poses else None, tmp, load_params_arg(args.params))

@@ -32,7 +32,8 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+import re
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -205,10 +206,16 @@ def _nearest_neighbour_scales_reference(points: torch.Tensor, k: int = 3, chunk_
 
 @dataclass
 class GaussianModel:
-    """Raw parameters of N 2D Gaussians (see the module docstring for the shapes).
+    """Raw parameters of N 2D Gaussians (see the module docstring for the shapes), plus any number
+    of extra per-Gaussian attributes.
 
-    The tensors are plain tensors; :mod:`trace3d.train` wraps them as optimiser parameters. The
-    maximum SH degree is implied by ``sh_rest`` (K = (degree + 1)^2 - 1).
+    The tensors are plain tensors; :class:`trace3d.training.GaussianOptimizer` wraps them as
+    optimiser parameters. The maximum SH degree is implied by ``sh_rest`` (K = (degree + 1)^2 - 1).
+
+    ``extras`` maps a name to a tensor [N] or [N, k] (e.g. lifting features [N, 16], tracing
+    statistics, the split generation of the GIT-guided refinement). Extras follow every subset,
+    split, prune and copy of the model, are written to the PLY as ``extra_<name>[_<i>]`` properties
+    (viewers ignore unknown properties) and read back from it.
     """
 
     means: torch.Tensor  # [N, 3]
@@ -217,6 +224,7 @@ class GaussianModel:
     opacity_logits: torch.Tensor  # [N]
     sh_dc: torch.Tensor  # [N, 1, 3]
     sh_rest: torch.Tensor  # [N, K, 3]
+    extras: dict[str, torch.Tensor] = field(default_factory=dict)
 
     PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
 
@@ -235,6 +243,9 @@ class GaussianModel:
         rest = self.sh_rest
         if rest.ndim != 3 or rest.shape[0] != n or rest.shape[2] != 3 or rest.shape[1] not in (0, 3, 8, 15):
             raise ValueError(f"GaussianModel.sh_rest: expected shape ({n}, K, 3) with K in (0, 3, 8, 15), got {tuple(rest.shape)}")
+        self.extras = dict(self.extras)
+        for name, value in self.extras.items():
+            check_extra(name, value, n)
 
     # --- basic properties ----------------------------------------------------------------------
     def __len__(self) -> int:
@@ -249,13 +260,31 @@ class GaussianModel:
     def device(self) -> torch.device:
         return self.means.device
 
+    @property
+    def names(self) -> tuple[str, ...]:
+        """Every per-Gaussian attribute: the core parameters, then the extras (insertion order)."""
+        return self.PARAM_NAMES + tuple(self.extras)
+
+    def get(self, name: str) -> torch.Tensor:
+        """The attribute ``name`` (core or extra)."""
+        return self.extras[name] if name in self.extras else getattr(self, name)
+
+    def set(self, name: str, value: torch.Tensor) -> None:
+        """Replace attribute ``name`` (core or extra; a new name adds an extra)."""
+        if name in self.PARAM_NAMES:
+            setattr(self, name, value)
+        else:
+            check_extra(name, value, len(self))
+            self.extras[name] = value
+
     def tensors(self) -> dict[str, torch.Tensor]:
-        """The raw parameters by name (same objects, not copies)."""
-        return {name: getattr(self, name) for name in self.PARAM_NAMES}
+        """Every attribute by name, core then extras (same objects, not copies)."""
+        return {name: self.get(name) for name in self.names}
 
     def map(self, fn) -> "GaussianModel":
-        """A new model with ``fn`` applied to every raw tensor."""
-        return GaussianModel(**{name: fn(t) for name, t in self.tensors().items()})
+        """A new model with ``fn`` applied to every tensor, extras included."""
+        core = {name: fn(getattr(self, name)) for name in self.PARAM_NAMES}
+        return GaussianModel(**core, extras={name: fn(t) for name, t in self.extras.items()})
 
     def detached_copy(self, device: str | torch.device | None = None) -> "GaussianModel":
         """A detached clone (optionally moved), e.g. a checkpoint."""
@@ -269,9 +298,11 @@ class GaussianModel:
         return self.map(lambda t: t.detach()[keep])
 
     def is_finite(self) -> bool:
-        """Whether every parameter is finite (one reduction per tensor; an overflowing sum counts as not finite)."""
+        """Whether every floating-point attribute is finite (one reduction per tensor; an
+        overflowing sum counts as not finite)."""
         with torch.no_grad():
-            total = torch.stack([t.detach().float().abs().sum() for t in self.tensors().values()]).sum()
+            sums = [t.detach().float().abs().sum() for t in self.tensors().values() if t.is_floating_point()]
+            total = torch.stack(sums).sum()
         return bool(torch.isfinite(total))
 
     # --- activations ---------------------------------------------------------------------------
@@ -330,10 +361,13 @@ class GaussianModel:
         names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
         names += [f"f_rest_{i}" for i in range(3 * k)]
         names += ["opacity", "scale_0", "scale_1", "rot_0", "rot_1", "rot_2", "rot_3"]
+        for name, value in self.extras.items():
+            names += extra_property_names(name, value)
         return names
 
     def write_ply(self, path: str | Path) -> None:
-        """Write the model as a binary little-endian PLY (3DGS/2DGS layout), atomically."""
+        """Write the model as a binary little-endian PLY (3DGS/2DGS layout, extras appended as
+        ``extra_*`` float properties), atomically."""
         path = Path(path)
         with torch.no_grad():
             n = len(self)
@@ -346,6 +380,7 @@ class GaussianModel:
                 self.log_scales,
                 self.quats,
             ]
+            columns += [value.reshape(n, -1) for value in self.extras.values()]
             data = torch.cat([c.detach().float().cpu() for c in columns], dim=1).numpy()
         names = self.ply_attribute_names()
         assert data.shape[1] == len(names)
@@ -361,8 +396,9 @@ class GaussianModel:
     def read_ply(cls, path: str | Path) -> "GaussianModel":
         """Read a PLY written by :meth:`write_ply` or by the 3DGS/2DGS reference code.
 
-        Accepts ``scale_2`` (3DGS files) by dropping it with a warning. Raises
-        :class:`~trace3d.errors.SceneFormatError` naming the file for anything malformed.
+        Accepts ``scale_2`` (3DGS files) by dropping it with a warning. ``extra_<name>[_<i>]``
+        properties become the extras (float32). Raises :class:`~trace3d.errors.SceneFormatError`
+        naming the file for anything malformed.
         """
         path = Path(path)
         vertex_count, properties, data = _read_binary_ply_vertices(path)
@@ -386,6 +422,10 @@ class GaussianModel:
         n = vertex_count
         k = len(rest_names) // 3
         rest = np.stack([col(r) for r in rest_names], axis=1) if k else np.zeros((n, 0), np.float32)
+        extras = {}
+        for name, columns in _extra_columns(names, path).items():
+            values = np.stack([col(c) for c in columns], axis=1) if columns[0] != f"extra_{name}" else col(columns[0])
+            extras[name] = torch.from_numpy(np.ascontiguousarray(values))
         model = cls(
             means=torch.from_numpy(np.stack([col("x"), col("y"), col("z")], axis=1)),
             quats=torch.from_numpy(np.stack([col(f"rot_{i}") for i in range(4)], axis=1)),
@@ -393,10 +433,50 @@ class GaussianModel:
             opacity_logits=torch.from_numpy(col("opacity")),
             sh_dc=torch.from_numpy(np.stack([col(f"f_dc_{i}") for i in range(3)], axis=1)).reshape(n, 1, 3),
             sh_rest=torch.from_numpy(rest.reshape(n, 3, k)).transpose(1, 2).contiguous(),
+            extras=extras,
         )
         if not model.is_finite():
             raise SceneFormatError(f"{path}: Gaussian PLY contains non-finite values.")
         return model
+
+
+def check_extra(name: str, value: torch.Tensor, n: int) -> None:
+    """Refuse an extra attribute that is not a tensor [N] or [N, k] or that shadows a core name."""
+    if name in GaussianModel.PARAM_NAMES or not name.isidentifier() or re.search(r"_\d+$", name):
+        raise ValueError(f"GaussianModel extra {name!r}: the name must be an identifier not ending in _<digits> "
+                         f"and other than {GaussianModel.PARAM_NAMES}.")
+    if not isinstance(value, torch.Tensor) or value.ndim not in (1, 2) or value.shape[0] != n:
+        got = tuple(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
+        raise ValueError(f"GaussianModel extra {name!r}: expected a tensor [N={n}] or [N={n}, k], got {got}.")
+
+
+def extra_property_names(name: str, value: torch.Tensor) -> list[str]:
+    """PLY property names of an extra: ``extra_<name>`` for [N], ``extra_<name>_<i>`` for [N, k]."""
+    if value.ndim == 1:
+        return [f"extra_{name}"]
+    return [f"extra_{name}_{i}" for i in range(value.shape[1])]
+
+
+def _extra_columns(names: list[str], path: Path) -> dict[str, list[str]]:
+    """Group the ``extra_*`` property names of a PLY by attribute, columns in index order."""
+    groups: dict[str, dict[int, str]] = {}
+    for prop in names:
+        if not prop.startswith("extra_"):
+            continue
+        match = re.fullmatch(r"extra_(\w+?)_(\d+)", prop)
+        name, index = (match.group(1), int(match.group(2))) if match else (prop[6:], -1)
+        groups.setdefault(name, {})[index] = prop
+    out = {}
+    for name, columns in groups.items():
+        if -1 in columns:
+            if len(columns) > 1:
+                raise SceneFormatError(f"{path}: extra attribute {name!r} is both a scalar and a vector property.")
+            out[name] = [columns[-1]]
+            continue
+        if sorted(columns) != list(range(len(columns))):
+            raise SceneFormatError(f"{path}: extra attribute {name!r} has columns {sorted(columns)}, expected 0..{len(columns) - 1}.")
+        out[name] = [columns[i] for i in range(len(columns))]
+    return out
 
 
 _PLY_TYPES = {

@@ -1,0 +1,152 @@
+"""A :class:`~trace3d.gaussians.GaussianModel` under Adam, with the edits density control needs.
+
+:class:`GaussianOptimizer` knows nothing of *when* or *why* Gaussians are added or removed (that is
+a :mod:`~trace3d.training.strategy`); it only keeps the model's tensors, their Adam moments and
+any per-Gaussian statistics consistent when they are. Every attribute of the model follows an
+edit — the core parameters, the extras (lifting features, tracing statistics) and the strategies'
+statistics registered with :meth:`GaussianOptimizer.add_statistic`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import torch
+
+from ..gaussians import GaussianModel
+from .params import TrainParams
+
+
+def learning_rates(params: TrainParams, extent: float) -> dict[str, float]:
+    """The 2DGS learning rate of every core parameter group (positions scaled by the extent)."""
+    return {
+        "means": params.position_lr_init * extent,
+        "quats": params.rotation_lr,
+        "log_scales": params.scaling_lr,
+        "opacity_logits": params.opacity_lr,
+        "sh_dc": params.feature_lr,
+        "sh_rest": params.feature_lr / params.sh_rest_lr_divisor,
+    }
+
+
+class GaussianOptimizer:
+    """Adam over the attributes of a :class:`GaussianModel` (one parameter group per attribute).
+
+    ``model``'s optimised tensors are replaced by ``torch.nn.Parameter`` objects; attributes without
+    a learning rate (e.g. extras that only need to follow edits) stay plain tensors. :meth:`append`
+    and :meth:`keep` edit parameters, Adam moments (new Gaussians start with zero moments) and the
+    registered statistics together.
+
+    Args:
+        model: the Gaussians (their tensors are copied).
+        lrs: learning rate by attribute name; attributes not named are not optimised.
+        params: the training parameters (strategies read them from here).
+        extent: the scene extent (strategies' size thresholds).
+    """
+
+    def __init__(self, model: GaussianModel, lrs: dict[str, float], params: TrainParams, extent: float):
+        self.params = params
+        self.extent = float(extent)
+        unknown = sorted(set(lrs) - set(model.names))
+        if unknown:
+            raise ValueError(f"GaussianOptimizer: learning rates for unknown attributes {unknown}.")
+
+        def wrap(name: str, t: torch.Tensor) -> torch.Tensor:
+            t = t.detach().clone().contiguous()
+            return torch.nn.Parameter(t) if name in lrs else t
+
+        self.model = GaussianModel(**{n: wrap(n, getattr(model, n)) for n in GaussianModel.PARAM_NAMES},
+                                   extras={n: wrap(n, t) for n, t in model.extras.items()})
+        self.optimizer = torch.optim.Adam(
+            [{"params": [self.model.get(name)], "lr": lr, "name": name} for name, lr in lrs.items()],
+            lr=0.0,
+            eps=1e-15,
+        )
+        self.statistics: dict[str, torch.Tensor] = {}
+        self._fills: dict[str, float] = {}
+
+    # --- bookkeeping ---------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self.model)
+
+    def add_statistic(self, name: str, fill: float = 0.0, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        """Register (or reset) a per-Gaussian statistic [N] that follows appends (``fill``) and keeps."""
+        value = torch.full((len(self.model),), fill, dtype=dtype, device=self.model.device)
+        self.statistics[name] = value
+        self._fills[name] = fill
+        return value
+
+    def set_lr(self, name: str, lr: float) -> None:
+        for group in self.optimizer.param_groups:
+            if group["name"] == name:
+                group["lr"] = lr
+
+    def set_position_lr(self, lr: float) -> None:
+        self.set_lr("means", lr)
+
+    def lr(self, name: str) -> float:
+        return next(g["lr"] for g in self.optimizer.param_groups if g["name"] == name)
+
+    def step(self) -> None:
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+
+    def _group(self, name: str) -> dict | None:
+        return next((g for g in self.optimizer.param_groups if g["name"] == name), None)
+
+    def replace(self, name: str, new_value: torch.Tensor,
+                moment_fn: Callable[[torch.Tensor], torch.Tensor] | None = None) -> None:
+        """Swap attribute ``name`` for ``new_value``; ``moment_fn`` maps each old Adam moment to the
+        new one (default: zero moments of the new shape)."""
+        group = self._group(name)
+        if group is None:
+            self.model.set(name, new_value.detach().contiguous())
+            return
+        old = group["params"][0]
+        new = torch.nn.Parameter(new_value.detach().contiguous())
+        state = self.optimizer.state.pop(old, None)
+        if state:
+            fn = moment_fn if moment_fn is not None else (lambda m: torch.zeros_like(new))
+            state["exp_avg"] = fn(state["exp_avg"]).contiguous()
+            state["exp_avg_sq"] = fn(state["exp_avg_sq"]).contiguous()
+            self.optimizer.state[new] = state
+        group["params"][0] = new
+        self.model.set(name, new)
+
+    def append(self, new: GaussianModel) -> None:
+        """Add the Gaussians of ``new`` (zero Adam moments; statistics take their fill value).
+
+        ``new`` must carry the same extras as the model.
+        """
+        if set(new.extras) != set(self.model.extras):
+            raise ValueError(f"GaussianOptimizer.append: extras {sorted(new.extras)} differ from the model's "
+                             f"{sorted(self.model.extras)}.")
+        count = len(new)
+        for name in self.model.names:
+            old = self.model.get(name)
+            extra = new.get(name).detach().to(old.device, old.dtype)
+
+            def grow(moment: torch.Tensor, extra=extra) -> torch.Tensor:
+                return torch.cat([moment, torch.zeros_like(extra)], dim=0)
+
+            self.replace(name, torch.cat([old.detach(), extra], dim=0), grow)
+        for name, value in self.statistics.items():
+            pad = torch.full((count,), self._fills[name], dtype=value.dtype, device=value.device)
+            self.statistics[name] = torch.cat([value, pad])
+
+    def keep(self, mask: torch.Tensor) -> None:
+        """Keep only the Gaussians where ``mask`` [N] bool is true (attributes, moments, statistics)."""
+        mask = mask.to(self.model.device)
+        for name in self.model.names:
+            old = self.model.get(name)
+            self.replace(name, old.detach()[mask], lambda moment: moment[mask])
+        for name, value in self.statistics.items():
+            self.statistics[name] = value[mask]
+
+    @torch.no_grad()
+    def reset_opacity(self, max_opacity: float = 0.01) -> None:
+        """Clamp every opacity to at most ``max_opacity`` and zero its Adam moments (3DGS reset)."""
+        logits = self.model.opacity_logits.detach()
+        limit = math.log(max_opacity / (1.0 - max_opacity))
+        self.replace("opacity_logits", torch.minimum(logits, torch.full_like(logits, limit)), torch.zeros_like)
