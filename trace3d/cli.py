@@ -121,6 +121,41 @@ def _cmd_gaussians(args: argparse.Namespace) -> None:
         run_gaussians(scene, Path(args.poses) if args.poses else None, tmp, load_params_arg(args.params))
 
 
+def _cmd_trace(args: argparse.Namespace) -> None:
+    from .io import atomic_dir
+    from .params import load_params_arg
+    from .scene import Scene
+    from .tracing.git import run_trace
+
+    scene = Scene.read(args.scene)
+    with atomic_dir(args.out) as tmp:
+        run_trace(scene, Path(args.poses) if args.poses else None, Path(args.gaussians), Path(args.labels), tmp,
+                  load_params_arg(args.params))
+
+
+def _cmd_merge(args: argparse.Namespace) -> None:
+    from .io import atomic_dir
+    from .params import load_params_arg
+    from .scene import Scene
+    from .tracing.merge import run_merge
+
+    scene = Scene.read(args.scene)
+    with atomic_dir(args.out) as tmp:
+        run_merge(scene, Path(args.git), Path(args.patches), tmp, load_params_arg(args.params))
+
+
+def _cmd_refine(args: argparse.Namespace) -> None:
+    from .io import atomic_dir
+    from .params import load_params_arg
+    from .scene import Scene
+    from .tracing.refine import run_refine
+
+    scene = Scene.read(args.scene)
+    with atomic_dir(args.out) as tmp:
+        run_refine(scene, Path(args.poses) if args.poses else None, Path(args.gaussians), Path(args.labels), tmp,
+                   load_params_arg(args.params))
+
+
 def _cmd_bench(args: argparse.Namespace) -> None:
     if args.name == "render":
         from .render.bench import run_bench
@@ -204,6 +239,32 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.add_argument("--params", help=params_help)
     p.set_defaults(func=_cmd_gaussians)
+
+    p = sub.add_parser("trace", help="GIT: trace every training view's label map through the fitted scene")
+    p.add_argument("--scene", required=True)
+    p.add_argument("--poses", help="poses folder whose cameras the fitted scene lives with")
+    p.add_argument("--gaussians", required=True, help="fitted scene folder (point_cloud.ply)")
+    p.add_argument("--labels", required=True, help="label maps <frame>.png (16-bit): the patches folder")
+    p.add_argument("--out", required=True)
+    p.add_argument("--params", help=params_help)
+    p.set_defaults(func=_cmd_trace)
+
+    p = sub.add_parser("merge", help="consistent instance maps: merge patches by majority vote over views")
+    p.add_argument("--scene", required=True)
+    p.add_argument("--git", required=True, help="trace step folder (git.npz)")
+    p.add_argument("--patches", required=True, help="patches folder (maps and hierarchy JSON)")
+    p.add_argument("--out", required=True)
+    p.add_argument("--params", help=params_help)
+    p.set_defaults(func=_cmd_merge)
+
+    p = sub.add_parser("refine", help="GIT-guided density control: split / prune ambiguous Gaussians while retraining")
+    p.add_argument("--scene", required=True)
+    p.add_argument("--poses", help="poses folder whose cameras the fitted scene lives with")
+    p.add_argument("--gaussians", required=True, help="fitted scene folder (point_cloud.ply, config.json)")
+    p.add_argument("--labels", required=True, help="instance maps <frame>.png: merge/instances (or raw patches)")
+    p.add_argument("--out", required=True)
+    p.add_argument("--params", help=params_help)
+    p.set_defaults(func=_cmd_refine)
 
     p = sub.add_parser("summary", help="write the per-scene summary table (results/scenes.md)")
     p.add_argument("scenes", nargs="+", help="scene folders")

@@ -126,21 +126,28 @@ def render(splats: Splats, camera: Camera, features: Tensor, background: Optiona
     )
 
 
-def _check_labels(labels: Tensor, camera: Camera, num_labels: int) -> None:
-    if labels.shape != (camera.height, camera.width):
+_LABEL_DTYPES = (torch.int64, torch.int32, torch.int16, torch.uint8, torch.uint16, torch.uint32)
+
+
+def _check_labels(labels: Tensor, camera: Camera, num_labels: int) -> Tensor:
+    """Validate a label map and return it as int64 (patch maps are uint16 PNGs)."""
+    if not isinstance(labels, Tensor) or labels.shape != (camera.height, camera.width):
+        got = tuple(labels.shape) if hasattr(labels, "shape") else type(labels).__name__
         raise Trace3DError(f"trace: labels for camera {camera.name!r} must have shape "
-                           f"[{camera.height}, {camera.width}], got {tuple(labels.shape)}.")
-    if labels.dtype not in (torch.int64, torch.int32, torch.int16, torch.uint8):
+                           f"[{camera.height}, {camera.width}], got {got}.")
+    if labels.dtype not in _LABEL_DTYPES:
         raise Trace3DError(f"trace: labels for camera {camera.name!r} must be integers, got {labels.dtype}.")
     if num_labels < 1:
         raise Trace3DError(f"trace: num_labels must be >= 1, got {num_labels}.")
+    labels = labels.to(torch.int64)  # unsigned 16/32-bit tensors lack most torch reductions
     if labels.numel() and int(labels.max()) >= num_labels:
         raise Trace3DError(f"trace: labels for camera {camera.name!r} reach {int(labels.max())} "
                            f"but num_labels is {num_labels}.")
+    return labels
 
 
 def trace(splats: Splats, camera: Camera, labels: Tensor, num_labels: int, near: float = 0.01,
-          backend: Optional[str] = None) -> Tensor:
+          backend: Optional[str] = None, count_pixels: bool = False) -> Tensor:
     """Gaussian Instance Tracing for one view.
 
     W[k, j] = sum over pixels x with labels[x] == j of w_k(x), the blending weight of splat k at x.
@@ -152,22 +159,28 @@ def trace(splats: Splats, camera: Camera, labels: Tensor, num_labels: int, near:
     Args:
         splats: N splats.
         camera: the view.
-        labels: [H, W] integer patch labels in 0..num_labels-1 (negative = ignored).
-        num_labels: T.
+        labels: [H, W] integer patch labels in 0..num_labels-1 (negative = ignored); any integer
+            dtype, uint16 patch maps included.
+        count_pixels: count the pixels of each label a splat contributes to (w_k(x) > 0) instead
+            of summing its weights: the official Trace3D code's statistic (``numba`` back end only).
+        num_labels: T (may be large, e.g. one label per pixel: memory is bounded by tracing the
+            tiles in batches, plus the non-zero output).
     Returns:
         sparse COO tensor [N, T] (float32, coalesced, no gradient).
     """
     n = check_splats(splats)
-    _check_labels(labels, camera, num_labels)
+    labels = _check_labels(labels, camera, num_labels)
     name = _backend(backend)
     with torch.no_grad():
         proj = project(splats, camera, near)
         if name == "reference":
+            if count_pixels:
+                raise Trace3DError("trace: count_pixels needs the numba back end.")
             dense = _trace_by_backward(proj, camera, labels, num_labels, near, "reference")
             return dense.to_sparse().coalesce()
         from .kernels import trace_weights
 
-        return trace_weights(proj, camera.width, camera.height, labels, num_labels, near)
+        return trace_weights(proj, camera.width, camera.height, labels, num_labels, near, count_pixels=count_pixels)
 
 
 def trace_by_backward(splats: Splats, camera: Camera, labels: Tensor, num_labels: int, near: float = 0.01,
@@ -177,7 +190,7 @@ def trace_by_backward(splats: Splats, camera: Camera, labels: Tensor, num_labels
     The definition of GIT as one backward pass; :func:`trace` must agree with it (tested).
     """
     check_splats(splats)
-    _check_labels(labels, camera, num_labels)
+    labels = _check_labels(labels, camera, num_labels)
     with torch.no_grad():
         proj = project(splats, camera, near)
     return _trace_by_backward(proj, camera, labels, num_labels, near, _backend(backend))

@@ -574,22 +574,13 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
-def trace_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, labels):
-    """Per-tile sums of blending weights by label, as sparse triplets (a forward pass that
-    accumulates w_k(pixel) into (k, label(pixel)) instead of blending features).
-
-    Args:
-        as :func:`forward_kernel`; labels: [H, W] int64 (negative = ignored).
-    Returns:
-        rows [E'] int64 (splat), cols [E'] int64 (label), weights [E'] float32; the same
-        (row, col) may repeat across tiles (sum them).
-    """
+def trace_label_counts(offsets, width, height, tiles_x, labels):
+    """[tiles] number of distinct non-negative labels in each 16x16 tile (0 for tiles without splats)."""
     n_tiles = offsets.shape[0] - 1
-    t_min = np.float32(TRANSMITTANCE_MIN)
-    near32 = np.float32(near)
-    # distinct labels per tile
     n_local = np.zeros(n_tiles, np.int64)
     for t in prange(n_tiles):
+        if offsets[t + 1] == offsets[t]:
+            continue
         px0 = (t % tiles_x) * TILE
         py0 = (t // tiles_x) * TILE
         px1 = min(px0 + TILE, width)
@@ -610,14 +601,36 @@ def trace_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, labe
                     seen[count] = lab
                     count += 1
         n_local[t] = count
-    cap = np.zeros(n_tiles + 1, np.int64)
-    for t in range(n_tiles):
-        cap[t + 1] = cap[t] + (offsets[t + 1] - offsets[t]) * n_local[t]
-    rows = np.empty(cap[n_tiles], np.int64)
-    cols = np.empty(cap[n_tiles], np.int64)
-    weights = np.empty(cap[n_tiles], np.float32)
-    used = np.zeros(n_tiles, np.int64)
-    for t in prange(n_tiles):
+    return n_local
+
+
+@njit(parallel=True, cache=True, fastmath=FASTMATH)
+def trace_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, labels, tiles, n_local, count_pixels):
+    """Per-tile sums of blending weights by label, as sparse triplets (a forward pass that
+    accumulates w_k(pixel) into (k, label(pixel)) instead of blending features).
+
+    Args:
+        as :func:`forward_kernel`; labels: [H, W] int64 (negative = ignored); tiles: [B] int64, the
+        tiles to process (the caller batches them to bound memory); n_local: [tiles] distinct
+        labels per tile (:func:`trace_label_counts`); count_pixels: add 1 per pixel a splat
+        contributes to instead of its blending weight (the official Trace3D code's counting).
+    Returns:
+        rows [E'] int64 (splat), cols [E'] int64 (label), weights [E'] float32, non-zero only; the
+        same (row, col) may repeat across tiles (sum them).
+    """
+    n_batch = tiles.shape[0]
+    t_min = np.float32(TRANSMITTANCE_MIN)
+    near32 = np.float32(near)
+    cap = np.zeros(n_batch + 1, np.int64)
+    for b in range(n_batch):
+        t = tiles[b]
+        cap[b + 1] = cap[b] + (offsets[t + 1] - offsets[t]) * n_local[t]
+    rows = np.empty(cap[n_batch], np.int64)
+    cols = np.empty(cap[n_batch], np.int64)
+    weights = np.empty(cap[n_batch], np.float32)
+    used = np.zeros(n_batch, np.int64)
+    for b in prange(n_batch):
+        t = tiles[b]
         start = offsets[t]
         end = offsets[t + 1]
         n_lab = n_local[t]
@@ -702,11 +715,11 @@ def trace_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, labe
                         continue
                     loc = local_of[p]
                     if loc >= 0:
-                        table[j - start, loc] += alpha * trans[p]
+                        table[j - start, loc] += np.float32(1.0) if count_pixels else alpha * trans[p]
                     trans[p] = t_next
             if n_done == n_pix:
                 break
-        base = cap[t]
+        base = cap[b]
         e = 0
         for j in range(start, n_used):
             g = lists[j]
@@ -717,19 +730,19 @@ def trace_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, labe
                     cols[base + e] = label_of[i]
                     weights[base + e] = wv
                     e += 1
-        used[t] = e
+        used[b] = e
     total = 0
-    for t in range(n_tiles):
-        total += used[t]
+    for b in range(n_batch):
+        total += used[b]
     out_rows = np.empty(total, np.int64)
     out_cols = np.empty(total, np.int64)
     out_w = np.empty(total, np.float32)
     k = 0
-    for t in range(n_tiles):
-        for e in range(used[t]):
-            out_rows[k] = rows[cap[t] + e]
-            out_cols[k] = cols[cap[t] + e]
-            out_w[k] = weights[cap[t] + e]
+    for b in range(n_batch):
+        for e in range(used[b]):
+            out_rows[k] = rows[cap[b] + e]
+            out_cols[k] = cols[cap[b] + e]
+            out_w[k] = weights[cap[b] + e]
             k += 1
     return out_rows, out_cols, out_w
 
@@ -856,15 +869,45 @@ def rasterize(proj: Projected, features: Tensor, width: int, height: int, backgr
     }
 
 
+# Upper bound on the (splat, label) slots one trace_kernel call preallocates (20 bytes each): tiles
+# are processed in batches below it, so memory stays bounded however many labels a view has (a
+# single tile over the bound is processed alone).
+TRACE_BATCH_SLOTS = 1 << 22
+
+
 def trace_weights(proj: Projected, width: int, height: int, labels: Tensor, num_labels: int,
-                  near: float = 0.01) -> Tensor:
-    """GIT weights of one view with the dedicated kernel: sparse COO [N, T] float32, coalesced."""
+                  near: float = 0.01, batch_slots: int = TRACE_BATCH_SLOTS, count_pixels: bool = False) -> Tensor:
+    """GIT weights of one view with the dedicated kernel: sparse COO [N, T] float32, coalesced
+    (pixel counts instead of weight sums with ``count_pixels``).
+
+    Tiles are traced in batches whose worst case (tile entries x distinct labels) stays under
+    ``batch_slots``, so memory is bounded by one batch plus the non-zero output.
+    """
     binning = Binning(proj, width, height)
     geom = _geom_array(pack_geometry(proj))
     lab = np.ascontiguousarray(labels.detach().cpu().numpy().astype(np.int64))
-    rows, cols, w = trace_kernel(binning.entry_geometry(geom), binning.entry_boxes, binning.lists, binning.offsets,
-                                 binning.width, binning.height, binning.tiles_x, float(near), lab)
+    n_local = trace_label_counts(binning.offsets, binning.width, binning.height, binning.tiles_x, lab)
+    need = np.diff(binning.offsets) * n_local
+    egeom = binning.entry_geometry(geom)
+    parts = []
+    tiles = np.nonzero(need)[0]
+    start = 0
+    while start < tiles.size:
+        cum = np.cumsum(need[tiles[start:]])
+        stop = start + max(1, int(np.searchsorted(cum, batch_slots, side="right")))
+        batch = np.ascontiguousarray(tiles[start:stop], dtype=np.int64)
+        parts.append(trace_kernel(egeom, binning.entry_boxes, binning.lists, binning.offsets, binning.width,
+                                  binning.height, binning.tiles_x, float(near), lab, batch, n_local,
+                                  bool(count_pixels)))
+        start = stop
     n = proj.depths.shape[0]
     dev = proj.depths.device
+    if parts:
+        rows = np.concatenate([p[0] for p in parts])
+        cols = np.concatenate([p[1] for p in parts])
+        w = np.concatenate([p[2] for p in parts])
+    else:
+        rows = cols = np.zeros(0, np.int64)
+        w = np.zeros(0, np.float32)
     idx = torch.from_numpy(np.stack([rows, cols])) if rows.size else torch.zeros(2, 0, dtype=torch.int64)
     return torch.sparse_coo_tensor(idx, torch.from_numpy(w), (n, num_labels), check_invariants=False).coalesce().to(dev)

@@ -220,7 +220,7 @@ def _fit_loop(model: GaussianModel, cameras: Sequence[Camera], images: list[torc
     densify_events: list[dict] = []
     checkpoint, checkpoint_iteration = state.model.detached_copy("cpu"), 0
     order: list[int] = []
-    active_sh = 0
+    active_sh = params.initial_sh_degree
     start = time.perf_counter()
     sums = {"loss": 0.0, "l1": 0.0, "ssim": 0.0, "normal": 0.0, "distortion": 0.0, "psnr": 0.0}
     sums_count = 0

@@ -35,6 +35,7 @@ class TrainParams:
     checkpoint_interval: int = 1000  # how often the last good checkpoint is refreshed
     # --- model and initialisation --------------------------------------------------------------
     sh_degree: int = 3
+    initial_sh_degree: int = 0  # SH degree active at iteration 1 (a fine-tune of a fitted scene starts at sh_degree)
     init: Literal["auto", "points", "depth", "random"] = "auto"
     init_opacity: float = 0.1
     init_max_points: int = 30_000
@@ -104,6 +105,8 @@ class TrainParams:
             raise ValueError(f"schedule_scale must be > 0, got {self.schedule_scale}")
         if not 0 <= self.sh_degree <= 3:
             raise ValueError(f"sh_degree must be in 0..3, got {self.sh_degree}")
+        if not 0 <= self.initial_sh_degree <= self.sh_degree:
+            raise ValueError(f"initial_sh_degree must be in 0..sh_degree, got {self.initial_sh_degree}")
         if not 0.0 < self.init_opacity < 1.0:
             raise ValueError(f"init_opacity must be in (0, 1), got {self.init_opacity}")
         if not 0.0 <= self.lambda_dssim <= 1.0:
