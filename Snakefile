@@ -19,6 +19,7 @@ include: "rules/scene.smk"
 include: "rules/poses.smk"
 include: "rules/masks.smk"
 include: "rules/gaussians.smk"
+include: "rules/trace.smk"
 include: "rules/report.smk"
 
 
@@ -28,3 +29,5 @@ rule reproduce:
         f"{RESULTS}/scenes.md",
         expand(f"{RESULTS}/{{scene}}/patches", scene=SCENES),
         f"{RESULTS}/reconstruction.md",
+        [d for s in SCENES for v in VARIANTS.values() for d in variant_outputs(s, v)],
+        f"{RESULTS}/tracing.md" if table_variant() is not None else [],

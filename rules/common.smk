@@ -81,3 +81,75 @@ def quoted_params(step):
         return shlex.quote(step_params(wildcards.scene, step))
 
     return inner
+
+
+# --- variants: the rows of an ablation ------------------------------------------------------
+# A variant names the settings of the paper's stages. Each step's output path carries only the
+# settings that step depends on, so variants that agree up to a step share its folder (and
+# Snakemake runs it once); a switched-off step is skipped by pointing the next step at its input.
+#   trace   results/<scene>/trace-<preset>/            (GIT of the raw patches: git.npz)
+#   merge   results/<scene>/merge-<preset>/instances/  (consistent instance maps)
+#   refine  results/<scene>/refine-<preset>-<masks>/   (masks: merged | patches)
+#   later   results/<scene>/<variant>/...              (lifting, evaluation: per variant)
+VARIANT_DEFAULTS = {"preset": "paper", "consistent_masks": True, "density_control": True}
+VARIANTS = {name: {**VARIANT_DEFAULTS, **(v or {})} for name, v in config.get("variants", {"full": {}}).items()}
+
+
+wildcard_constraints:
+    preset="paper|official",
+    masks="merged|patches",
+    variant="|".join(VARIANTS),
+
+
+def variant(name):
+    return VARIANTS[name]
+
+
+def labels_dir(scene, v):
+    """The label maps a variant's later stages use: consistent instance maps, or the raw patches."""
+    if v["consistent_masks"]:
+        return f"{RESULTS}/{scene}/merge-{v['preset']}"
+    return f"{RESULTS}/{scene}/patches"
+
+
+def gaussians_dir(scene, v):
+    """The Gaussians a variant's later stages use: refined, or the plain 2DGS fit."""
+    if v["density_control"]:
+        masks = "merged" if v["consistent_masks"] else "patches"
+        return f"{RESULTS}/{scene}/refine-{v['preset']}-{masks}"
+    return f"{RESULTS}/{scene}/gaussians"
+
+
+def variant_outputs(scene, v):
+    """Every shared-step folder a variant needs (what `reproduce` asks for until lifting exists)."""
+    return sorted({labels_dir(scene, v), gaussians_dir(scene, v)})
+
+
+def preset_params(step):
+    """A params function: the step's parameters with the wildcard's preset, one shell-quoted JSON word."""
+
+    def inner(wildcards):
+        merged = json.loads(step_params(wildcards.scene, step))
+        merged.setdefault("preset", wildcards.preset)
+        return shlex.quote(json.dumps(merged, sort_keys=True))
+
+    return inner
+
+
+def refine_labels(wildcards):
+    if wildcards.masks == "merged":
+        return f"{RESULTS}/{wildcards.scene}/merge-{wildcards.preset}"
+    return f"{RESULTS}/{wildcards.scene}/patches"
+
+
+def refine_labels_arg(wildcards):
+    folder = refine_labels(wildcards)
+    return f"{folder}/instances" if wildcards.masks == "merged" else folder
+
+
+# The full method's (first variant with both stages on, else the first) merge and refine figures per scene.
+def table_variant():
+    for name, v in VARIANTS.items():
+        if v["consistent_masks"] and v["density_control"]:
+            return v
+    return None

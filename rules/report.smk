@@ -40,3 +40,27 @@ rule reconstruction_table:
     shell:
         "trace3d reconstruction-table --poses {input.poses} --gaussians {input.gaussians}"
         " --out {output.table} --plot {output.plot} > {log} 2>&1"
+
+
+rule tracing_table:
+    input:
+        merge=lambda wc: [f"{RESULTS}/{s}/merge-{table_variant()['preset']}" for s in SCENES],
+        refine=lambda wc: [gaussians_dir(s, table_variant()) for s in SCENES],
+    output:
+        table=report(
+            f"{RESULTS}/tracing.md",
+            category="Tracing",
+            caption="../workflow/report/tracing.rst",
+        ),
+        plot=report(
+            f"{RESULTS}/plots/merge.png",
+            category="Tracing",
+            caption="../workflow/report/tracing.rst",
+        ),
+    log:
+        f"{RESULTS}/logs/tracing_table.log",
+    conda:
+        ENV
+    shell:
+        "trace3d tracing-table --merge {input.merge} --refine {input.refine}"
+        " --out {output.table} --plot {output.plot} > {log} 2>&1"

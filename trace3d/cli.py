@@ -191,6 +191,13 @@ def _cmd_reconstruction_table(args: argparse.Namespace) -> None:
     )
 
 
+def _cmd_tracing_table(args: argparse.Namespace) -> None:
+    from .report.tracing import write_tracing_table
+
+    write_tracing_table([Path(p) for p in args.merge], [Path(p) for p in args.refine] if args.refine else None,
+                        Path(args.out), Path(args.plot) if args.plot else None)
+
+
 # ----------------------------------------------------------------------------------------------
 # parser
 # ----------------------------------------------------------------------------------------------
@@ -277,6 +284,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="Markdown table (a CSV is written beside it)")
     p.add_argument("--plot", help="PNG bar plot of test PSNR and minutes per scene")
     p.set_defaults(func=_cmd_reconstruction_table)
+
+    p = sub.add_parser("tracing-table", help="write the merge / refine table (results/tracing.md)")
+    p.add_argument("--merge", nargs="+", required=True, help="merge folders, one per scene")
+    p.add_argument("--refine", nargs="+", help="refine folders, same order")
+    p.add_argument("--out", required=True, help="Markdown table (a CSV is written beside it)")
+    p.add_argument("--plot", help="PNG bars of the merge quality before / after")
+    p.set_defaults(func=_cmd_tracing_table)
 
     p = sub.add_parser("bench", help="benchmarks; print one JSON object")
     p.add_argument("name", choices=["render", "synthetic"])

@@ -1,0 +1,77 @@
+# Trace3D's own stages: GIT trace of the raw patches, consistent instance maps, GIT-guided refinement.
+# Paths carry only what each step depends on (see the variant notes in rules/common.smk).
+
+
+rule trace:
+    input:
+        scene=f"{RESULTS}/{{scene}}/scene",
+        poses=f"{RESULTS}/{{scene}}/poses",
+        gaussians=f"{RESULTS}/{{scene}}/gaussians",
+        patches=f"{RESULTS}/{{scene}}/patches",
+    output:
+        directory(f"{RESULTS}/{{scene}}/trace-{{preset}}"),
+    params:
+        p=preset_params("trace"),
+        code=code_version("scene.py", "render", "gaussians.py", "tracing", "training"),
+    threads: 2
+    resources:
+        mem_mb=4000,
+    log:
+        f"{RESULTS}/logs/{{scene}}/trace-{{preset}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{scene}}/trace-{{preset}}.tsv"
+    conda:
+        ENV
+    shell:
+        "trace3d trace --scene {input.scene} --poses {input.poses} --gaussians {input.gaussians}"
+        " --labels {input.patches} --out {output} --params {params.p} > {log} 2>&1"
+
+
+rule merge:
+    input:
+        scene=f"{RESULTS}/{{scene}}/scene",
+        git=f"{RESULTS}/{{scene}}/trace-{{preset}}",
+        patches=f"{RESULTS}/{{scene}}/patches",
+    output:
+        directory(f"{RESULTS}/{{scene}}/merge-{{preset}}"),
+    params:
+        p=preset_params("merge"),
+        code=code_version("scene.py", "tracing", "masks"),
+    threads: 2
+    resources:
+        mem_mb=4000,
+    log:
+        f"{RESULTS}/logs/{{scene}}/merge-{{preset}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{scene}}/merge-{{preset}}.tsv"
+    conda:
+        ENV
+    shell:
+        "trace3d merge --scene {input.scene} --git {input.git} --patches {input.patches}"
+        " --out {output} --params {params.p} > {log} 2>&1"
+
+
+rule refine:
+    input:
+        scene=f"{RESULTS}/{{scene}}/scene",
+        poses=f"{RESULTS}/{{scene}}/poses",
+        gaussians=f"{RESULTS}/{{scene}}/gaussians",
+        labels=refine_labels,
+    output:
+        directory(f"{RESULTS}/{{scene}}/refine-{{preset}}-{{masks}}"),
+    params:
+        p=preset_params("refine"),
+        labels=refine_labels_arg,
+        code=code_version("scene.py", "render", "gaussians.py", "tracing", "training", "losses.py"),
+    threads: 2
+    resources:
+        mem_mb=8000,
+    log:
+        f"{RESULTS}/logs/{{scene}}/refine-{{preset}}-{{masks}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{scene}}/refine-{{preset}}-{{masks}}.tsv"
+    conda:
+        ENV
+    shell:
+        "trace3d refine --scene {input.scene} --poses {input.poses} --gaussians {input.gaussians}"
+        " --labels {params.labels} --out {output} --params {params.p} > {log} 2>&1"
