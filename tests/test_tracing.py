@@ -418,3 +418,17 @@ def test_merge_refuses_a_stale_trace(tiny_fitted, tmp_path):
     assert not (tmp_path / "merge").exists()
     assert main(["trace", "--scene", str(root / "scene"), "--gaussians", str(tmp_path / "nothing"),
                  "--labels", str(root / "patches"), "--out", str(tmp_path / "t2")]) == 2
+
+
+@pytest.mark.parametrize("block", [1, 4, 1 << 26])
+def test_all_source_histograms_equal_the_per_view_kernel(monkeypatch, block):
+    import trace3d.tracing.merge as merge
+
+    monkeypatch.setattr(merge, "HISTOGRAM_BLOCK", block * 4 * 6 * 4)  # `block` source views at a time
+    rng = np.random.default_rng(5)
+    labels = rng.integers(-1, 4, size=(60, 6)).astype(np.int32)
+    visible = rng.random((60, 6)) > 0.3
+    every = list(merge.all_source_histograms(labels, visible, 4, 4))
+    assert len(every) == 6
+    for v0 in range(6):
+        np.testing.assert_array_equal(every[v0], source_histograms(labels, visible, v0, 4, 4))

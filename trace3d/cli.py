@@ -165,6 +165,10 @@ def _cmd_bench(args: argparse.Namespace) -> None:
         from .datasets.synthetic import run_bench
 
         result = run_bench(quick=args.quick)
+    elif args.name == "trace":
+        from .tracing.bench import run_bench
+
+        result = run_bench(Path(args.room), quick=args.quick)
     else:  # argparse restricts choices; kept for clarity
         raise Trace3DError(f"unknown benchmark {args.name!r}.")
     text = json.dumps(result, indent=2)
@@ -293,7 +297,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_tracing_table)
 
     p = sub.add_parser("bench", help="benchmarks; print one JSON object")
-    p.add_argument("name", choices=["render", "synthetic"])
+    p.add_argument("name", choices=["render", "synthetic", "trace"])
+    p.add_argument("--room", default="results/room0",
+                   help="trace: a fitted room's results folder (scene/, poses/, gaussians/, patches/)")
     p.add_argument("--quick", action="store_true", help="smaller sizes (smoke run)")
     p.add_argument("--out", help="also write the JSON here")
     p.set_defaults(func=_cmd_bench)

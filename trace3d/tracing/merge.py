@@ -161,6 +161,49 @@ def source_histograms(labels: np.ndarray, visible: np.ndarray, source_view: int,
     return cooccurrence(source, np.ascontiguousarray(labels[rows]), vis, int(num_source), int(num_labels))
 
 
+@njit(cache=True)
+def _all_source_histograms(labels, indptr, indices, first, count, num_source, num_labels):
+    n, views = labels.shape
+    hist = np.zeros((count, num_source, views, num_labels), np.int32)
+    for i in range(n):  # every pair of views that sees Gaussian i (serial: the blocks overlap in i)
+        lo, hi = indptr[i], indptr[i + 1]
+        for k0 in range(lo, hi):
+            v0 = indices[k0]
+            if v0 < first or v0 >= first + count:
+                continue
+            a = labels[i, v0]
+            for k in range(lo, hi):
+                v = indices[k]
+                if v != v0:
+                    hist[v0 - first, a, v, labels[i, v]] += 1
+    return hist
+
+
+# Largest histogram block (int32 entries) computed at once: 64 M entries = 256 MB.
+HISTOGRAM_BLOCK = 1 << 26
+
+
+def all_source_histograms(labels: np.ndarray, visible: np.ndarray, num_source: int, num_labels: int):
+    """:func:`source_histograms` of every source view, yielded in order as [num_source, L, num_labels].
+
+    Each Gaussian contributes only over the views it is visible in (a per-Gaussian list), so the
+    cost is the number of (Gaussian, source view, view) co-visibilities, sum_i k_i^2 for a Gaussian
+    seen in k_i views, not N L^2. Source views come in blocks that bound the memory.
+    """
+    seen = visible & (labels >= 0)
+    counts = seen.sum(axis=1)
+    indptr = np.zeros(len(labels) + 1, np.int64)
+    np.cumsum(counts, out=indptr[1:])
+    indices = np.nonzero(seen)[1].astype(np.int64)  # row-major: sorted views per Gaussian
+    masked = np.ascontiguousarray(np.where(seen, labels, -1).astype(np.int32))
+    views = labels.shape[1]
+    per_view = max(1, int(num_source) * views * int(num_labels))
+    block = max(1, min(views, HISTOGRAM_BLOCK // per_view))
+    for start in range(0, views, block):
+        count = min(block, views - start)
+        yield from _all_source_histograms(masked, indptr, indices, start, count, int(num_source), int(num_labels))
+
+
 # ----------------------------------------------------------------------------------------------
 # Union-find merging per view
 # ----------------------------------------------------------------------------------------------
@@ -199,13 +242,16 @@ class ViewMerge:
 
 
 def merge_view(stats: GITStats, view: int, num_patches: int, pairs: np.ndarray, threshold: float,
-               min_visibility: float) -> ViewMerge:
-    """Merge the patches of view ``view`` (ids 1..num_patches; 0 is uncovered and never merged)."""
-    visible = stats.visible(min_visibility)
+               min_visibility: float, hist: np.ndarray | None = None) -> ViewMerge:
+    """Merge the patches of view ``view`` (ids 1..num_patches; 0 is uncovered and never merged).
+
+    ``hist``: the view's [A, L, T] source histograms when already computed (:func:`all_source_histograms`).
+    """
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
-    num_labels = int(stats.num_labels.max(initial=1))
-    hist = source_histograms(stats.label, visible, view, max(num_patches + 1, int(stats.num_labels[view])),
-                             num_labels)
+    if hist is None:
+        num_labels = int(stats.num_labels.max(initial=1))
+        hist = source_histograms(stats.label, stats.visible(min_visibility), view,
+                                 max(num_patches + 1, int(stats.num_labels[view])), num_labels)
     sims, omega = pair_similarity(hist, pairs)
     merged = sims > threshold
     uf = UnionFind(num_patches + 1)
@@ -244,21 +290,21 @@ def associate(stats: GITStats, merges: Sequence[ViewMerge], min_visibility: floa
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     width = int(max(counts, default=0)) + 1
     links = []
-    for v in range(views):
+    for v, hist in enumerate(all_source_histograms(merged_labels, visible, width, width)):
         if counts[v] == 0:
             continue
-        hist = source_histograms(merged_labels, visible, v, width, width).astype(np.float64)  # [G+1, L, G'+1]
+        hist = hist.astype(np.float64)  # [G+1, L, G'+1]
         fwd_total = hist.sum(axis=2)  # [G+1, L]: Gaussians of (v, m) co-visible in w
         rev_total = hist.sum(axis=0)  # [L, G'+1]: Gaussians of (w, m') co-visible in v
-        for w in range(v + 1, views):
-            block = hist[1:, w, 1:]
-            if block.size == 0 or not block.any():
-                continue
-            fwd = block / np.maximum(fwd_total[1:, w, None], 1)
-            rev = block / np.maximum(rev_total[w, None, 1:], 1)
-            strength = np.minimum(fwd, rev)
-            for m, mp in zip(*np.nonzero(strength > share)):
-                links.append((float(strength[m, mp]), offsets[v] + m, offsets[w] + mp))
+        block = hist[1:, v + 1:, 1:]  # later views only: each pair of views once
+        fwd = block / np.maximum(fwd_total[1:, v + 1:, None], 1)
+        rev = block / np.maximum(rev_total[None, v + 1:, 1:], 1)
+        strength = np.minimum(fwd, rev)
+        m, w, mp = np.nonzero(strength > share)
+        w_abs = w + v + 1
+        mp_ok = mp < np.asarray(counts)[w_abs]
+        for s_, a_, b_ in zip(strength[m, w, mp][mp_ok], offsets[v] + m[mp_ok], offsets[w_abs[mp_ok]] + mp[mp_ok]):
+            links.append((float(s_), int(a_), int(b_)))
     total = int(offsets[-1])
     uf = UnionFind(total)
     view_of = np.repeat(np.arange(views), counts)
@@ -376,14 +422,18 @@ def merge_all(stats: GITStats, hierarchies: Sequence, params: MergeParams) -> tu
     """Merge every traced view (``hierarchies``: the views' :class:`PatchHierarchy`, in stats order) and
     associate the results across views. Returns the per-view merges and global-id luts."""
     merges = []
-    for v, hierarchy in enumerate(hierarchies):
+    num_labels = int(stats.num_labels.max(initial=1))
+    num_source = max(num_labels, max((h.num_patches + 1 for h in hierarchies), default=1))
+    every = all_source_histograms(stats.label, stats.visible(params.min_visibility), num_source, num_labels)
+    for v, (hierarchy, hist) in enumerate(zip(hierarchies, every)):
         if params.common_mask_only:
             pairs = hierarchy.candidate_pairs()
         else:
             a, b = np.triu_indices(hierarchy.num_patches + 1, k=1)
             keep = a > 0
             pairs = np.stack([a[keep], b[keep]], axis=1)
-        merges.append(merge_view(stats, v, hierarchy.num_patches, pairs, params.threshold, params.min_visibility))
+        merges.append(merge_view(stats, v, hierarchy.num_patches, pairs, params.threshold, params.min_visibility,
+                                 hist=hist))
     luts = associate(stats, merges, params.min_visibility, params.association_share)
     return merges, luts
 
