@@ -16,6 +16,7 @@ of such pixels, as the released code counts). As the supplementary ("Scalability
 from __future__ import annotations
 
 import logging
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -111,8 +112,9 @@ def trace_views(model: GaussianModel, cameras: Sequence[Camera], label_maps: Seq
     prob = np.zeros((n, views), np.float32)
     visibility = np.zeros((n, views), np.float32)
     num_labels = np.zeros(views, np.int64)
-    for v, (cam, labels) in enumerate(tqdm(list(zip(cameras, label_maps)), desc="GIT trace", disable=not progress,
-                                           leave=False)):
+    bar = tqdm(list(zip(cameras, label_maps)), desc="GIT trace", disable=not progress, leave=False,
+               mininterval=0.5 if sys.stderr.isatty() else 30.0)  # log files get a line every 30 s
+    for v, (cam, labels) in enumerate(bar):
         labels_t = torch.from_numpy(np.asarray(labels).astype(np.int64))
         t = int(labels_t.max()) + 1 if labels_t.numel() else 1
         weights = trace(splats, cam, labels_t, max(t, 1), near=near, count_pixels=count_pixels)
