@@ -77,7 +77,10 @@ def test_end_to_end_tiny(tmp_path):
             "poses": {"mode": "dataset"},
             "masks": {"source": "simulated", "simulated": {"inconsistency": 0.5}},
             "gaussians": TINY_TRAINING,
+            "refine": {"iterations": 20, "detect_at": [1, 10], "schedule_scale": 1.0, "highlight_views": 1},
         },
+        # both ablation switches: the shared steps must run once
+        "variants": {"full": {}, "no_refine": {"density_control": False}, "raw": {"consistent_masks": False}},
         "scenes": {"a": {"kind": "synthetic", "synthetic": {"seed": 1}},
                    "b": {"kind": "synthetic", "synthetic": {"seed": 2}}},
     }
@@ -93,6 +96,12 @@ def test_end_to_end_tiny(tmp_path):
             assert (tmp_path / "results" / scene / step).is_dir(), step
         assert len(list((tmp_path / "results" / scene / "patches").glob("*.png"))) >= 6
         assert (tmp_path / "results" / scene / "gaussians" / "point_cloud.ply").is_file()
+        for step in ("trace-paper", "merge-paper", "refine-paper-merged", "refine-paper-patches"):
+            assert (tmp_path / "results" / scene / step).is_dir(), step
+        assert not (tmp_path / "results" / scene / "refine-official-merged").exists()
+        assert len(list((tmp_path / "results" / scene / "merge-paper" / "instances").glob("*.png"))) >= 4
+    tracing = (tmp_path / "results" / "tracing.md").read_text()
+    assert "| a " in tracing and "ARI before" in tracing
     reconstruction = (tmp_path / "results" / "reconstruction.md").read_text()
     assert "| a " in reconstruction and "| mean " in reconstruction
     assert (tmp_path / "results" / "plots" / "reconstruction.png").stat().st_size > 1000
