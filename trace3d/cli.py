@@ -156,6 +156,35 @@ def _cmd_refine(args: argparse.Namespace) -> None:
                    load_params_arg(args.params))
 
 
+def _cmd_evaluate(args: argparse.Namespace) -> None:
+    from .evaluation.step import run_evaluate
+    from .io import atomic_dir
+    from .params import load_params_arg
+
+    label = _json_arg(args.label, "--label")
+    with atomic_dir(args.out) as tmp:
+        run_evaluate(Path(args.scene), Path(args.poses) if args.poses else None, Path(args.gaussians), Path(args.lift),
+                     tmp, load_params_arg(args.params), label)
+
+
+def _json_arg(text: str | None, flag: str) -> dict:
+    if not text:
+        return {}
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise Trace3DError(f"{flag}: not valid JSON ({exc}).") from exc
+    if not isinstance(value, dict):
+        raise Trace3DError(f"{flag}: expected a JSON mapping, got {type(value).__name__}.")
+    return value
+
+
+def _cmd_tables(args: argparse.Namespace) -> None:
+    from .report.tables import write_tables
+
+    write_tables(Path(args.results), Path(args.out))
+
+
 def _cmd_bench(args: argparse.Namespace) -> None:
     if args.name == "render":
         from .render.bench import run_bench
@@ -276,6 +305,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.add_argument("--params", help=params_help)
     p.set_defaults(func=_cmd_refine)
+
+    p = sub.add_parser("evaluate", help="3D object extraction and novel-view segmentation of a lifted scene")
+    p.add_argument("--scene", required=True)
+    p.add_argument("--poses", help="poses folder whose cameras the fitted scene lives with")
+    p.add_argument("--gaussians", required=True, help="the Gaussians the lifting used (point_cloud.ply)")
+    p.add_argument("--lift", required=True, help="lift step folder (lift.json names the method)")
+    p.add_argument("--out", required=True)
+    p.add_argument("--params", help=params_help)
+    p.add_argument("--label", help="JSON mapping copied into metrics.json as \"variant\" (name and settings)")
+    p.set_defaults(func=_cmd_evaluate)
+
+    p = sub.add_parser("tables", help="paper-layout Tables 2, 3 and 5 from results/<scene>/<variant>/eval/metrics.json")
+    p.add_argument("--results", required=True, help="results folder")
+    p.add_argument("--out", required=True, help="output folder (results/tables)")
+    p.set_defaults(func=_cmd_tables)
 
     p = sub.add_parser("summary", help="write the per-scene summary table (results/scenes.md)")
     p.add_argument("scenes", nargs="+", help="scene folders")

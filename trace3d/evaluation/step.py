@@ -1,0 +1,206 @@
+"""The ``evaluate`` step: 3D object extraction and novel-view segmentation of one lifted scene.
+
+Writes into ``out_dir``:
+
+    metrics.json     per object (query, per-view scores, means), scene means, the protocol's
+                     settings, the lifting's lift.json and the variant label given by the rule
+    pictures.png     a few objects: reference view + query, the object rendered alone beside the
+                     ground truth, the novel-view mask coloured TP / FP / FN
+    objects/<id>.ply the object's Gaussians (standard 3DGS/2DGS PLY layout; ``GaussianModel.read_ply``)
+    objects/<id>.png the object alone from ``turntable_views`` directions
+
+Scene means weigh every object equally: an object's score is the mean over its scored views, the
+scene's mIoU / PSNR / mAcc the mean over objects with at least one scored view (objects without
+one are listed under ``skipped`` with the reason). ``pooled`` gives the mean over all (object, view)
+pairs as well.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import logging
+import pkgutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from ..errors import Trace3DError
+from ..io import write_json
+from ..params import from_mapping, to_dict
+from ..scene import Scene
+from .extraction import evaluate_extraction, render_alone
+from .groundtruth import GroundTruth
+from .metrics import mean_or_none
+from .nvs import evaluate_nvs
+from .params import EvaluateParams
+from .pictures import world_up, write_pictures, write_turntable
+
+log = logging.getLogger(__name__)
+
+
+def register_lifting_methods() -> None:
+    """Import every module of :mod:`trace3d.lifting` so that each method registers its loader
+    (the evaluation names no method; a method is found through ``lift.json``)."""
+    from .. import lifting
+
+    for info in sorted(pkgutil.iter_modules(lifting.__path__), key=lambda m: m.name):
+        importlib.import_module(f"{lifting.__name__}.{info.name}")
+
+
+def _means(views: list[dict], keys: tuple[str, ...]) -> dict:
+    return {k: mean_or_none([v[k] for v in views]) for k in keys}
+
+
+def _picture_choice(objects: list[dict], count: int) -> list[int]:
+    """Indices of ``count`` evaluated objects spread from the best to the worst extraction IoU."""
+    scored = [i for i, o in enumerate(objects) if o["extraction"]["iou"] is not None]
+    scored.sort(key=lambda i: (-objects[i]["extraction"]["iou"], objects[i]["id"]))
+    if count <= 0 or not scored:
+        return []
+    if len(scored) <= count:
+        return scored
+    picks = np.linspace(0, len(scored) - 1, count).round().astype(int)
+    return [scored[k] for k in sorted(set(picks.tolist()))]
+
+
+def run_evaluate(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Path, lift_dir: Path, out_dir: Path,
+                 params: dict, label: dict | None = None) -> dict:
+    """Evaluate the lifted scene of ``lift_dir`` (over ``gaussians_dir``) on the scene's ground truth."""
+    from ..lifting import load_lifted
+    from ..tracing.git import load_fitted
+
+    p = from_mapping(EvaluateParams, params, "evaluate params")
+    if label is not None and not isinstance(label, dict):
+        raise Trace3DError(f"evaluate: --label must be a JSON mapping, got {label!r}.")
+    start = time.perf_counter()
+    scene = Scene.read(scene_dir)
+    model, cameras = load_fitted(scene, Path(poses_dir) if poses_dir else None, Path(gaussians_dir))
+    train = [c for c in cameras if c.split == "train"]
+    register_lifting_methods()
+    lifted = load_lifted(lift_dir, model, scene, train)
+    lift_info = json.loads((Path(lift_dir) / "lift.json").read_text())
+    gt = GroundTruth(scene, cameras, p)
+    by_name = {c.name: c for c in cameras}
+    out_dir = Path(out_dir)
+    if p.object_files:
+        (out_dir / "objects").mkdir(parents=True, exist_ok=True)
+    up = world_up(train)
+    images: dict[str, np.ndarray] = {}
+
+    def image(frame: str) -> np.ndarray:
+        if frame not in images:
+            images[frame] = scene.image(frame).astype(np.float32) / 255.0
+        return images[frame]
+
+    objects, skipped, picture_data = [], [], {}
+    bar = tqdm(gt.object_ids, desc="evaluate objects", leave=False,
+               mininterval=0.5 if sys.stderr.isatty() else 30.0)
+    for oid in bar:
+        query = gt.query(oid)
+        if query is None:
+            skipped.append({"id": oid, "name": gt.name(oid),
+                            "reason": f"no training view shows it with at least {p.min_pixels} pixels"})
+            continue
+        keep = np.asarray(lifted.object_gaussians(query))
+        if keep.shape != (len(model),) or keep.dtype != bool:
+            raise Trace3DError(f"evaluate: the lifted scene of {lift_dir} returned object Gaussians of shape "
+                               f"{keep.shape} ({keep.dtype}); expected [{len(model)}] bool.")
+        ext_frames, nvs_frames = gt.extraction_views(oid), gt.nvs_views(oid)
+        ext_cams = [by_name[f] for f in ext_frames]
+        ext_truth = [gt.mask(oid, f) for f in ext_frames]
+        extraction = evaluate_extraction(model, keep, ext_cams, ext_truth, [image(f) for f in ext_frames],
+                                         p.alpha_eps, p.psnr_margin, p.near)
+        nvs_cams = [by_name[f] for f in nvs_frames]
+        nvs_truth = [gt.mask(oid, f) for f in nvs_frames]
+        nvs, nvs_preds = evaluate_nvs(lifted, query, nvs_cams, nvs_truth, p.accuracy)
+        entry = {
+            "id": oid, "name": gt.name(oid), "reference": query.reference, "query_pixels": int(query.mask.sum()),
+            "gaussians": int(keep.sum()),
+            "extraction": {**_means(extraction, ("iou", "psnr")), "views": extraction},
+            "nvs": {**_means(nvs, ("iou", "acc")), "views": nvs},
+            "ground_truth_views": [v.to_json() for v in gt.info[oid]],
+        }
+        objects.append(entry)
+        if not extraction and not nvs:
+            skipped.append({"id": oid, "name": gt.name(oid),
+                            "reason": f"no scored view ({p.views} views, >= {p.min_pixels} px, not occluded)"})
+        obj_model = model.subset(torch.from_numpy(keep))
+        if p.object_files:
+            obj_model.write_ply(out_dir / "objects" / f"{oid}.ply")
+            write_turntable(out_dir / "objects" / f"{oid}.png", obj_model, up, p.turntable_views, p.turntable_size,
+                            p.near)
+        # the picture view: the scored extraction view (else NVS view) with the most ground-truth pixels
+        frames = ext_frames or nvs_frames
+        if frames:
+            best = max(frames, key=lambda f: (int(gt.mask(oid, f).sum()), f))
+            rgb, _ = render_alone(obj_model, by_name[best], p.near)
+            pred = nvs_preds[nvs_frames.index(best)] if best in nvs_frames else \
+                lifted.object_masks(query, [by_name[best]])[0]
+            picture_data[oid] = {"frame": best, "render": rgb, "pred": np.asarray(pred, bool)}
+
+    scored_ext = [o for o in objects if o["extraction"]["iou"] is not None]
+    scored_nvs = [o for o in objects if o["nvs"]["iou"] is not None]
+    pairs_ext = [v for o in objects for v in o["extraction"]["views"]]
+    pairs_nvs = [v for o in objects for v in o["nvs"]["views"]]
+    summary = {
+        "extraction": {"mIoU": mean_or_none([o["extraction"]["iou"] for o in scored_ext]),
+                       "PSNR": mean_or_none([o["extraction"]["psnr"] for o in scored_ext]),
+                       "objects": len(scored_ext), "views": len(pairs_ext),
+                       "pooled": _means(pairs_ext, ("iou", "psnr"))},
+        "nvs": {"mIoU": mean_or_none([o["nvs"]["iou"] for o in scored_nvs]),
+                "mAcc": mean_or_none([o["nvs"]["acc"] for o in scored_nvs]),
+                "mAcc_definition": "precision TP/(TP+FP)" if p.accuracy == "precision" else "accuracy (TP+TN)/pixels",
+                "objects": len(scored_nvs), "views": len(pairs_nvs),
+                "pooled": _means(pairs_nvs, ("iou", "acc"))},
+    }
+    rows = []
+    for i in _picture_choice(objects, p.picture_objects):
+        o = objects[i]
+        data = picture_data.get(o["id"])
+        if data is None:
+            continue
+        frame = data["frame"]
+        truth = gt.mask(o["id"], frame)
+        ext = next((v for v in o["extraction"]["views"] if v["frame"] == frame), None)
+        nv = next((v for v in o["nvs"]["views"] if v["frame"] == frame), None)
+        rows.append({
+            "reference": image(o["reference"]), "query": gt.mask(o["id"], o["reference"]),
+            "render": data["render"], "truth_image": image(frame) * truth[..., None], "image": image(frame),
+            "nvs": data["pred"], "truth": truth,
+            "label": f"{o['id']} {o['name']}  (ref. {o['reference']})",
+            "extraction_text": f"{frame}: IoU {ext['iou']:.2f}, PSNR {ext['psnr']:.1f} dB" if ext else frame,
+            "nvs_text": f"{frame}: IoU {nv['iou']:.2f}" if nv else "",
+        })
+    method = lift_info.get("method", "?")
+    name = (label or {}).get("variant", method)
+    title = f"{Path(scene_dir).resolve().parent.name} / {name}: object mIoU " \
+            f"{_fmt(summary['extraction']['mIoU'])}, NVS mIoU {_fmt(summary['nvs']['mIoU'])}"
+    write_pictures(out_dir / "pictures.png", rows, title)
+    seconds = time.perf_counter() - start
+    metrics = {
+        "scene": Path(scene_dir).resolve().parent.name,
+        "variant": label or {},
+        "protocol": p.protocol,
+        "params": to_dict(p),
+        "lift": lift_info,
+        "gaussians": int(len(model)),
+        "occlusion_test": bool(gt.has_depth),
+        **summary,
+        "objects": objects,
+        "skipped": skipped,
+        "seconds": seconds,
+    }
+    write_json(out_dir / "metrics.json", metrics)
+    log.info("evaluate: %d objects (%d skipped), object mIoU %s, PSNR %s, NVS mIoU %s, %.1f s", len(objects),
+             len(skipped), _fmt(summary["extraction"]["mIoU"]), _fmt(summary["extraction"]["PSNR"], 1),
+             _fmt(summary["nvs"]["mIoU"]), seconds)
+    return metrics
+
+
+def _fmt(value: float | None, digits: int = 3) -> str:
+    return "n/a" if value is None else f"{value:.{digits}f}"
