@@ -131,5 +131,5 @@ def write_pictures(path: Path, rows: list[dict], title: str) -> None:
     fig.suptitle(title, fontsize=11)
     fig.tight_layout()
     with atomic_file(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=90, metadata={"Software": None})
+        fig.savefig(tmp, format="png", dpi=90, bbox_inches="tight", metadata={"Software": None})
     plt.close(fig)
