@@ -104,3 +104,10 @@ def test_cli_tables(tmp_path):
     assert main(["tables", "--results", str(tmp_path / "results"), "--out", str(tmp_path / "results" / "tables")]) == 0
     assert (tmp_path / "results" / "tables" / "table5.md").is_file()
     assert main(["tables", "--results", str(tmp_path / "none"), "--out", str(tmp_path / "t")]) == 2
+    # only the listed evaluate folders
+    only = [str(tmp_path / "results" / s / "full" / "eval") for s in ("room0", "room1")]
+    assert main(["tables", "--results", str(tmp_path / "results"), "--out", str(tmp_path / "only"), "--evals", *only]) == 0
+    text = (tmp_path / "only" / "table2.md").read_text()
+    assert "| full |" in text and "no_refine" not in text
+    assert main(["tables", "--results", str(tmp_path / "results"), "--out", str(tmp_path / "x"), "--evals",
+                 str(tmp_path / "results" / "room1" / "both_off" / "eval")]) == 2

@@ -182,7 +182,7 @@ def _json_arg(text: str | None, flag: str) -> dict:
 def _cmd_tables(args: argparse.Namespace) -> None:
     from .report.tables import write_tables
 
-    write_tables(Path(args.results), Path(args.out))
+    write_tables(Path(args.results), Path(args.out), [Path(e) for e in args.evals] if args.evals else None)
 
 
 def _cmd_bench(args: argparse.Namespace) -> None:
@@ -319,6 +319,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("tables", help="paper-layout Tables 2, 3 and 5 from results/<scene>/<variant>/eval/metrics.json")
     p.add_argument("--results", required=True, help="results folder")
     p.add_argument("--out", required=True, help="output folder (results/tables)")
+    p.add_argument("--evals", nargs="+", help="only these evaluate folders (<results>/<scene>/<variant>/eval)")
     p.set_defaults(func=_cmd_tables)
 
     p = sub.add_parser("summary", help="write the per-scene summary table (results/scenes.md)")

@@ -49,12 +49,19 @@ class Row:
     nvs_macc: dict = field(default_factory=dict)
 
 
-def collect(results: Path) -> tuple[list[str], list[Row]]:
-    """Scenes (sorted) and one :class:`Row` per variant (sorted by name) from ``results``."""
+def collect(results: Path, evals: list[Path] | None = None) -> tuple[list[str], list[Row]]:
+    """Scenes (sorted) and one :class:`Row` per variant (sorted by name) from ``results`` (every
+    ``*/*/eval/metrics.json``), or from exactly the ``evals`` folders (``<scene>/<variant>/eval``)."""
     results = Path(results)
     if not results.is_dir():
         raise Trace3DError(f"{results}: results folder does not exist.")
-    paths = sorted(results.glob("*/*/eval/metrics.json"))
+    if evals is None:
+        paths = sorted(results.glob("*/*/eval/metrics.json"))
+    else:
+        paths = sorted(Path(e) / "metrics.json" for e in evals)
+        missing = [p for p in paths if not p.is_file()]
+        if missing:
+            raise SceneFormatError(f"{missing[0]}: metrics.json is missing; is it an evaluate step's folder?")
     rows: dict[str, Row] = {}
     scenes: set[str] = set()
     for path in paths:
@@ -216,8 +223,8 @@ def table5(rows: list[Row]) -> Table:
     return Table("table5", caption, header, text, tex, csv_header, plain, _protocol_note(group))
 
 
-def build_tables(results: Path) -> list[Table]:
-    scenes, rows = collect(results)
+def build_tables(results: Path, evals: list[Path] | None = None) -> list[Table]:
+    scenes, rows = collect(results, evals)
     if not rows:
         raise Trace3DError(f"{results}: no */*/eval/metrics.json found; run the evaluate step first.")
     t2 = _per_scene_table("table2", "3D object extraction (paper Table 2): object mIoU (%) per scene, "
@@ -232,12 +239,13 @@ def build_tables(results: Path) -> list[Table]:
     return [t2, t2p, t3, table5(rows)]
 
 
-def write_tables(results: Path, out_dir: Path) -> list[Path]:
-    """Write every table as .md, .csv and .tex into ``out_dir``; returns the paths written."""
+def write_tables(results: Path, out_dir: Path, evals: list[Path] | None = None) -> list[Path]:
+    """Write every table as .md, .csv and .tex into ``out_dir``; returns the paths written.
+    ``evals`` restricts the input to those evaluate folders (the workflow passes its own)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
-    for table in build_tables(results):
+    for table in build_tables(results, evals):
         for ext, text in (("md", table.markdown()), ("csv", table.csv()), ("tex", table.latex())):
             path = out_dir / f"{table.name}.{ext}"
             with atomic_file(path) as tmp:

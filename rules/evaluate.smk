@@ -1,0 +1,57 @@
+# Evaluation of every (scene, variant): 3D object extraction and novel-view segmentation (Tables 2, 3),
+# and the paper-layout tables over all of them (Tables 2, 3, 5). See docs/evaluation.md.
+# The lift folder comes from rules/lift.smk (`{RESULTS}/{scene}/{variant}/lift`).
+# --label: the variant's name and settings, copied into metrics.json (the tables read them back).
+
+rule evaluate:
+    input:
+        scene=f"{RESULTS}/{{scene}}/scene",
+        poses=f"{RESULTS}/{{scene}}/poses",
+        gaussians=lambda w: gaussians_dir(w.scene, variant(w.variant)),
+        lift=f"{RESULTS}/{{scene}}/{{variant}}/lift",
+    output:
+        directory(f"{RESULTS}/{{scene}}/{{variant}}/eval"),
+    params:
+        p=quoted_params("evaluate"),
+        label=lambda w: shlex.quote(json.dumps({"variant": w.variant, **variant(w.variant)}, sort_keys=True)),
+        code=code_version("scene.py", "render", "gaussians.py", "evaluation", "lifting", "tracing/git.py"),
+    threads: 2
+    resources:
+        mem_mb=4000,
+    log:
+        f"{RESULTS}/logs/{{scene}}/{{variant}}/evaluate.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{scene}}/{{variant}}/evaluate.tsv"
+    conda:
+        ENV
+    shell:
+        "trace3d evaluate --scene {input.scene} --poses {input.poses} --gaussians {input.gaussians}"
+        " --lift {input.lift} --out {output} --params {params.p} --label {params.label} > {log} 2>&1"
+
+
+TABLES = ("table2", "table2_psnr", "table3", "table5")
+
+
+rule tables:
+    input:
+        expand(f"{RESULTS}/{{scene}}/{{variant}}/eval", scene=SCENES, variant=list(VARIANTS)),
+    output:
+        **{
+            t: report(
+                f"{RESULTS}/tables/{t}.md",
+                category="Tables",
+                caption=f"../workflow/report/{t}.rst",
+            )
+            for t in TABLES
+        },
+        **{f"{t}_{ext}": f"{RESULTS}/tables/{t}.{ext}" for t in TABLES for ext in ("csv", "tex")},
+    params:
+        results=lambda w, output: os.path.dirname(os.path.dirname(output.table2)),
+        out=lambda w, output: os.path.dirname(output.table2),
+        code=code_version("report/tables.py"),
+    log:
+        f"{RESULTS}/logs/tables.log",
+    conda:
+        ENV
+    shell:
+        "trace3d tables --results {params.results} --out {params.out} --evals {input} > {log} 2>&1"
