@@ -390,3 +390,23 @@ def test_evaluate_bad_input(tiny_lifted, tmp_path):
         register_lifting_methods()
         load_lifted(tmp_path / "stale", GaussianModel.read_ply(root / "gaussians" / "point_cloud.ply"),
                     Scene.read(root / "scene"), [])
+
+
+def test_official_protocol_scores_all_views_with_precision(tiny_lifted, tmp_path):
+    from trace3d.evaluation.step import run_evaluate
+
+    root = tiny_lifted
+    (tmp_path / "o").mkdir()
+    m = run_evaluate(root / "scene", None, root / "gaussians", root / "lift", tmp_path / "o",
+                     {"protocol": "official", "min_pixels": 20, "object_files": False, "picture_objects": 1}, None)
+    assert m["protocol"] == "official" and m["nvs"]["mAcc_definition"].startswith("precision")
+    assert m["params"]["views"] == "all" and m["params"]["accuracy"] == "precision"
+    frames = {v["frame"] for o in m["objects"] for v in o["nvs"]["views"]}
+    assert frames & {"view_000", "view_002", "view_004", "view_006"}  # training views count too
+    for o in m["objects"]:
+        for v in o["nvs"]["views"]:  # precision: TP / predicted, never above the ground-truth share
+            assert 0.0 <= v["acc"] <= 1.0
+            assert v["acc"] * v["predicted_pixels"] <= v["pixels"] + 1e-9
+            occluded = next(g for g in o["ground_truth_views"] if g["frame"] == v["frame"])["occluded_fraction"]
+            assert occluded is None or occluded <= 0.05
+    assert not (tmp_path / "o" / "objects").exists()
