@@ -55,3 +55,23 @@ rule tables:
         ENV
     shell:
         "trace3d tables --results {params.results} --out {params.out} --evals {input} > {log} 2>&1"
+
+
+# The evaluation figure of every (scene, variant), beside the tables in the report.
+rule evaluation_pictures:
+    input:
+        f"{RESULTS}/{{scene}}/{{variant}}/eval",
+    output:
+        report(
+            f"{RESULTS}/plots/evaluation/{{scene}}-{{variant}}.png",
+            category="Evaluation",
+            subcategory="{variant}",
+            labels={"scene": "{scene}", "variant": "{variant}"},
+            caption="../workflow/report/evaluation.rst",
+        ),
+    log:
+        f"{RESULTS}/logs/{{scene}}/{{variant}}/evaluation_pictures.log",
+    conda:
+        ENV
+    shell:
+        "cp {input}/pictures.png {output} > {log} 2>&1"

@@ -49,7 +49,10 @@ def register_lifting_methods() -> None:
     from .. import lifting
 
     for info in sorted(pkgutil.iter_modules(lifting.__path__), key=lambda m: m.name):
-        importlib.import_module(f"{lifting.__name__}.{info.name}")
+        try:
+            importlib.import_module(f"{lifting.__name__}.{info.name}")
+        except ImportError as exc:  # a method with a missing optional dependency cannot be loaded
+            log.warning("lifting method module %s is unavailable: %s", info.name, exc)
 
 
 def _means(views: list[dict], keys: tuple[str, ...]) -> dict:
