@@ -37,3 +37,23 @@ rule patches:
     shell:
         "trace3d patches --scene {input.scene} --masks {input.masks} --out {output}"
         " --params {params.p} > {log} 2>&1"
+
+
+# Every view's masks painted into one label per pixel (smallest on top): the input of the
+# baselines that lift without patches or merging (EgoLifter-style, FlashSplat-style).
+rule overlay:
+    input:
+        scene=f"{RESULTS}/{{scene}}/scene",
+        masks=f"{RESULTS}/{{scene}}/masks",
+    output:
+        directory(f"{RESULTS}/{{scene}}/overlay"),
+    params:
+        code=code_version("scene.py", "masks"),
+    log:
+        f"{RESULTS}/logs/{{scene}}/overlay.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{scene}}/overlay.tsv"
+    conda:
+        ENV
+    shell:
+        "trace3d overlay --scene {input.scene} --masks {input.masks} --out {output} > {log} 2>&1"

@@ -533,3 +533,53 @@ def test_cli_masks_and_patches(tmp_path, monkeypatch, capsys):
     err = capsys.readouterr().err
     assert "segment_anything" in err and "`simulated`" in err
     assert not (tmp_path / "m2").exists()  # nothing half-written
+
+
+# --- overlay (one label per pixel, the baselines' input) ---------------------------------------
+
+
+def test_overlay_smallest_covering_mask_wins():
+    from trace3d.masks.overlay import overlay_masks
+
+    masks = np.zeros((3, 4, 5), dtype=bool)
+    masks[0] = True  # the whole view (largest)
+    masks[1, :2, :3] = True  # 6 px, on top of mask 0
+    masks[2, 1, 1:4] = True  # 3 px, overlaps mask 1 and mask 0
+    labels = overlay_masks(masks)
+    expected = np.full((4, 5), 1, dtype=np.uint16)
+    expected[:2, :3] = 2
+    expected[1, 1:4] = 3
+    np.testing.assert_array_equal(labels, expected)
+    # The stack order does not matter, only the areas: reversing the stack keeps the same masks on top.
+    reversed_labels = overlay_masks(masks[::-1])
+    np.testing.assert_array_equal(reversed_labels, 4 - expected)
+
+
+def test_overlay_uncovered_pixels_are_zero_and_ties_take_the_later_mask():
+    from trace3d.masks.overlay import overlay_masks
+
+    masks = np.zeros((2, 3, 3), dtype=bool)
+    masks[0, 0, :2] = True
+    masks[1, 0, 1:] = True  # same area: painted after mask 0
+    labels = overlay_masks(masks)
+    np.testing.assert_array_equal(labels[0], [1, 2, 2])
+    assert (labels[1:] == 0).all()
+    with pytest.raises(ValueError):
+        overlay_masks(np.zeros((3, 3), dtype=bool))
+
+
+def test_run_overlay_writes_train_views(tmp_path):
+    from trace3d.masks.overlay import overlay_masks, run_overlay
+    from trace3d.scene import read_u16
+
+    scene = make_scene(tmp_path / "scene")
+    run_masks(scene, tmp_path / "masks", "simulated", {})
+    report = run_overlay(scene, tmp_path / "masks", tmp_path / "overlay")
+    assert report["views"] == len(scene.train_cameras) > 0
+    for cam in scene.train_cameras:
+        masks, _ = read_mask_npz(tmp_path / "masks" / f"{cam.name}.npz", cam.height, cam.width)
+        np.testing.assert_array_equal(read_u16(tmp_path / "overlay" / f"{cam.name}.png"), overlay_masks(masks))
+    for cam in scene.test_cameras:
+        assert not (tmp_path / "overlay" / f"{cam.name}.png").exists()
+    with pytest.raises(SceneFormatError, match="masks folder does not exist"):
+        run_overlay(scene, tmp_path / "nowhere", tmp_path / "overlay2")

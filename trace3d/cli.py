@@ -97,6 +97,17 @@ def _cmd_patches(args: argparse.Namespace) -> None:
         run_patches(scene, Path(args.masks), tmp, load_params_arg(args.params))
 
 
+def _cmd_overlay(args: argparse.Namespace) -> None:
+    from .io import atomic_dir
+    from .scene import Scene
+
+    scene = Scene.read(args.scene)
+    from .masks.overlay import run_overlay
+
+    with atomic_dir(args.out) as tmp:
+        run_overlay(scene, Path(args.masks), tmp)
+
+
 def _cmd_poses(args: argparse.Namespace) -> None:
     from .io import atomic_dir
     from .params import load_params_arg
@@ -266,6 +277,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.add_argument("--params", help=params_help)
     p.set_defaults(func=_cmd_patches)
+
+    p = sub.add_parser("overlay", help="overlay each view's masks into one label per pixel (baselines without patches)")
+    p.add_argument("--scene", required=True)
+    p.add_argument("--masks", required=True)
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=_cmd_overlay)
 
     p = sub.add_parser("poses", help="camera poses by pycolmap structure-from-motion (or the data set's)")
     p.add_argument("--scene", required=True)
