@@ -162,7 +162,7 @@ def _cmd_bench(args: argparse.Namespace) -> None:
 
         result = run_bench(quick=args.quick)
     elif args.name == "synthetic":
-        from .datasets.synthetic import run_bench
+        from .datasets.synthetic.bench import run_bench
 
         result = run_bench(quick=args.quick)
     elif args.name == "trace":
