@@ -3,7 +3,7 @@
 Everything here is differentiable with torch autograd; both the dense reference renderer and the
 numba tile kernels consume its output, so the two back ends share one definition of the geometry.
 
-Conventions (see ``/work/shared/notes/2dgs-math.md``): OpenCV camera (x right, y down, z forward),
+Conventions (the formulas are written out in ``docs/2dgs-math.md``): OpenCV camera (x right, y down, z forward),
 pixel centres at integer + 0.5.  A splat k has centre p, rotation R = [t_u | t_v | t_w] from its
 quaternion, scales (s_u, s_v), opacity o.  Its *ray transform* is
 

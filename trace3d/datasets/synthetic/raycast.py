@@ -158,18 +158,18 @@ def _intersect_local(shape, sx, sy, sz, ox, oy, oz, dx, dy, dz, tmin):
     a = dx * dx + dy * dy - k * k * dz * dz
     b = 2.0 * (ox * dx + oy * dy - k * dz * q)
     c = ox * ox + oy * oy - q * q
+    # the side's roots: two of the quadratic, one where it degenerates to a linear equation, or none
+    # (-inf never passes the tmin test)
+    root_lo = root_hi = -math.inf
     if abs(a) > 1e-14:
         disc = b * b - 4.0 * a * c
         if disc >= 0.0:
             sq = math.sqrt(disc)
-            for root in ((-b - sq) / (2.0 * a), (-b + sq) / (2.0 * a)):
-                if tmin < root < best:
-                    zz = oz + root * dz
-                    if -h <= zz <= h and rm + k * zz >= 0.0:
-                        best = root
-                        face = 0
+            root_lo = (-b - sq) / (2.0 * a)
+            root_hi = (-b + sq) / (2.0 * a)
     elif abs(b) > 1e-14:
-        root = -c / b
+        root_lo = -c / b
+    for root in (root_lo, root_hi):
         if tmin < root < best:
             zz = oz + root * dz
             if -h <= zz <= h and rm + k * zz >= 0.0:
