@@ -215,6 +215,22 @@ def _normal_local(shape, sx, sy, sz, x, y, z, face):
     return nx / n, ny / n, nz / n
 
 
+@njit(inline="always")
+def _meets_sphere(ox, oy, oz, dx, dy, dz, dd, sx, sy, sz, radius, tmin, tmax):
+    """Whether the ray o + t d (``dd`` = |d|^2) meets the sphere of centre s and ``radius`` at some
+    tmin < t < tmax (a bounding-sphere test), and o - s."""
+    cx = ox - sx
+    cy = oy - sy
+    cz = oz - sz
+    b = cx * dx + cy * dy + cz * dz
+    c = cx * cx + cy * cy + cz * cz - radius * radius
+    disc = b * b - dd * c
+    if disc < 0.0:
+        return False, cx, cy, cz
+    sq = math.sqrt(disc)
+    return not ((-b + sq) / dd <= tmin or (-b - sq) / dd >= tmax), cx, cy, cz
+
+
 @njit(cache=True)
 def cast_ray(ox, oy, oz, dx, dy, dz, tmin, tmax, shapes, centers, rotations, sizes, radii, clusters, any_hit):
     """Nearest primitive hit by o + t d with tmin < t < tmax: (t, primitive index or -1, face).
@@ -228,28 +244,14 @@ def cast_ray(ox, oy, oz, dx, dy, dz, tmin, tmax, shapes, centers, rotations, siz
     dd = dx * dx + dy * dy + dz * dz
     for k in range(clusters.shape[0]):
         # cluster (one object) bounding sphere first, then its primitives
-        cx = ox - clusters[k, 2]
-        cy = oy - clusters[k, 3]
-        cz = oz - clusters[k, 4]
-        b = cx * dx + cy * dy + cz * dz
-        c = cx * cx + cy * cy + cz * cz - clusters[k, 5] * clusters[k, 5]
-        disc = b * b - dd * c
-        if disc < 0.0:
-            continue
-        sq = math.sqrt(disc)
-        if (-b + sq) / dd <= tmin or (-b - sq) / dd >= best_t:
+        hit, _, _, _ = _meets_sphere(ox, oy, oz, dx, dy, dz, dd, clusters[k, 2], clusters[k, 3], clusters[k, 4],
+                                     clusters[k, 5], tmin, best_t)
+        if not hit:
             continue
         for p in range(np.int64(clusters[k, 0]), np.int64(clusters[k, 1])):
-            cx = ox - centers[p, 0]
-            cy = oy - centers[p, 1]
-            cz = oz - centers[p, 2]
-            b = cx * dx + cy * dy + cz * dz
-            c = cx * cx + cy * cy + cz * cz - radii[p] * radii[p]
-            disc = b * b - dd * c
-            if disc < 0.0:
-                continue
-            sq = math.sqrt(disc)
-            if (-b + sq) / dd <= tmin or (-b - sq) / dd >= best_t:
+            hit, cx, cy, cz = _meets_sphere(ox, oy, oz, dx, dy, dz, dd, centers[p, 0], centers[p, 1], centers[p, 2],
+                                            radii[p], tmin, best_t)
+            if not hit:
                 continue
             R = rotations[p]
             lox = R[0, 0] * cx + R[1, 0] * cy + R[2, 0] * cz
