@@ -15,6 +15,16 @@ SCENES = sorted(config["scenes"])
 ENV = "../workflow/envs/trace3d.yaml"
 PACKAGE = Path(workflow.basedir) / "trace3d"
 
+# Process settings of every job (the shell commands inherit Snakemake's environment), made here
+# because importing trace3d makes none: sleeping OpenMP waits (spinning workers steal the cores the
+# numba kernels need, docs/performance.md) and numba's compile cache in the checkout, so that only the
+# first job compiles.  Values already in the environment (e.g. from the Makefile) are respected.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(workflow.basedir) / ".numba_cache"))
+
+# Library files every step runs (the CLI, atomic writing, parameter parsing): part of every code version.
+COMMON_CODE = ("cli.py", "io.py", "params.py", "errors.py", "__init__.py")
+
 
 wildcard_constraints:
     scene="|".join(SCENES),
@@ -42,9 +52,10 @@ def step_params(scene, step):
 
 
 def code_version(*parts):
-    """Hash of the library files a step runs, so that Snakemake reruns the step when they change."""
+    """Hash of the library files a step runs (``COMMON_CODE`` and ``parts``), so that Snakemake reruns
+    the step when they change."""
     digest = hashlib.sha1()
-    for part in parts:
+    for part in COMMON_CODE + parts:
         path = PACKAGE / part
         files = sorted(path.rglob("*.py")) if path.is_dir() else [path]
         for f in files:

@@ -13,7 +13,6 @@ from trace3d.gaussians import (
     SH_C0,
     GaussianModel,
     eval_sh,
-    depth_points,
     init_from_depth,
     init_from_points,
     init_random,
@@ -24,6 +23,7 @@ from trace3d.gaussians import (
     quats_aligning_z_to,
     rgb_to_sh,
 )
+from trace3d.datasets.depth_init import depth_points_and_normals
 from trace3d.scene import Camera, Scene, write_cameras, write_frame
 
 
@@ -199,7 +199,7 @@ def test_init_from_depth_back_projects_onto_the_plane(tmp_path):
     assert len(model) == 2 * 6 * 8
     torch.testing.assert_close(model.means[:, 2], torch.full((len(model),), 2.0))
     # depth normals face the camera (-z) away from the image border, where they are undefined (0)
-    points, colors, normals = depth_points(scene, stride=2, max_points=None, seed=0)
+    points, colors, normals = depth_points_and_normals(scene, stride=2, max_points=None, seed=0)
     torch.testing.assert_close(points, model.means)
     defined = normals.norm(dim=-1) > 0.5
     assert int(defined.sum()) == 2 * 5 * 7  # rows 1..9, columns 1..13 of the stride-2 grid

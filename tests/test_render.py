@@ -90,6 +90,83 @@ def rel_err(a: torch.Tensor | None, b: torch.Tensor | None) -> float:
     return float((a - b).norm() / b.norm().clamp_min(1e-12))
 
 
+def pair_terms(splats: Splats, camera: Camera) -> dict[str, np.ndarray]:
+    """Every (pixel, splat) pair evaluated from the 2DGS formulas in float64, written independently of
+    the renderer (docs/2dgs-math.md): the ray through the pixel centre meets the disk's plane at
+    c = (x T_w - T_x) x (y T_w - T_y).
+
+    Returns [H, W, N] arrays sigma_disk, sigma_filter, alpha (clamped, 0 where skipped), z, and [N]
+    centre depths ``depth``.
+    """
+    q = splats.quats.detach().double().numpy()
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    rot = np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+                    np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+                    np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], 1)  # [N, 3, 3]
+    scales = splats.scales.detach().double().numpy()
+    opac = splats.opacities.detach().double().numpy()
+    K, R_cw, t_cw = camera.K, camera.rotation, camera.translation
+    p_c = splats.means.detach().double().numpy() @ R_cw.T + t_cw  # [N, 3]
+    axes = np.einsum("ij,njk->nik", R_cw, rot)  # [N, 3, 3] camera-space t_u, t_v, t_w as columns
+    T = np.einsum("ij,njk->nik", K, np.stack([axes[:, :, 0] * scales[:, :1], axes[:, :, 1] * scales[:, 1:],
+                                               p_c], axis=-1))  # rows T_x, T_y, T_w
+    centre = (p_c @ K.T)[:, :2] / p_c[:, 2:3]
+    xs = np.arange(camera.width) + 0.5
+    ys = np.arange(camera.height) + 0.5
+    px, py = np.meshgrid(xs, ys)  # [H, W]
+    h_u = px[..., None, None] * T[None, None, :, 2] - T[None, None, :, 0]  # [H, W, N, 3]
+    h_v = py[..., None, None] * T[None, None, :, 2] - T[None, None, :, 1]
+    c = np.cross(h_u, h_v)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u, v = c[..., 0] / c[..., 2], c[..., 1] / c[..., 2]
+    sigma_disk = 0.5 * (u * u + v * v)
+    sigma_filter = (px[..., None] - centre[:, 0]) ** 2 + (py[..., None] - centre[:, 1]) ** 2
+    disk = sigma_disk <= sigma_filter
+    alpha = np.minimum(0.99, opac * np.exp(-np.minimum(sigma_disk, sigma_filter)))
+    depth = np.where(disk, u * T[:, 2, 0] + v * T[:, 2, 1] + T[:, 2, 2], T[:, 2, 2])
+    keep = (c[..., 2] != 0) & (alpha >= 1 / 255) & (depth > 0.01) & (p_c[:, 2] > 0.01)
+    return {"sigma_disk": sigma_disk, "sigma_filter": sigma_filter, "alpha": np.where(keep, alpha, 0.0),
+            "z": depth, "depth": p_c[:, 2]}
+
+
+def trace_bruteforce(splats: Splats, camera: Camera, labels: torch.Tensor, num_labels: int,
+                     count_pixels: bool = False) -> torch.Tensor:
+    """Slow, obviously-correct twin of :func:`trace`: for every pixel, blend its splats front to back
+    (by centre depth, ties by index) in a Python loop and add each weight w_k = alpha_k T_k (or 1 with
+    ``count_pixels``) to W[k, label]; stop before a splat that would leave a transmittance below 1e-4.
+
+    Returns: dense [N, num_labels] float64.
+    """
+    terms = pair_terms(splats, camera)
+    order = np.argsort(terms["depth"], kind="stable")
+    out = np.zeros((splats.means.shape[0], num_labels))
+    for row in range(camera.height):
+        for col in range(camera.width):
+            label = int(labels[row, col])
+            transmittance = 1.0
+            for k in order:
+                alpha = terms["alpha"][row, col, k]
+                if alpha == 0.0:
+                    continue
+                if transmittance * (1.0 - alpha) < 1e-4:
+                    break
+                if label >= 0:
+                    out[k, label] += 1.0 if count_pixels else alpha * transmittance
+                transmittance *= 1.0 - alpha
+    return torch.from_numpy(out)
+
+
+def opaque_scene(seed: int, n: int = 60):
+    """Random large splats with opacities in [0.995, 1]: pairs near a disk's centre hit the 0.99 alpha
+    clamp, and pixels behind a few of them stop blending early."""
+    splats, camera, features = make_scene(seed, n=n)
+    gen = torch.Generator().manual_seed(seed + 100)
+    scales = 0.25 + 0.25 * torch.rand(n, 2, generator=gen)
+    opac = 1.0 - 0.005 * torch.rand(n, generator=gen)
+    return Splats(splats.means, splats.quats, scales, opac), camera, features
+
+
 class TestKernelAgainstReference:
     @pytest.mark.parametrize("seed", [0, 1, 2, 3])
     def test_forward_and_gradients(self, seed):
@@ -138,12 +215,49 @@ class TestKernelAgainstReference:
         assert 1.0 - 1e-3 < float(out_k.alpha[cy, cx].detach()) <= 1.0 - 1e-4 + 1e-6
 
     def test_float64_inputs(self):
+        # float64 splats through the kernels (float32 inside) against the reference computed in float64
         splats, camera, features = make_scene(12, n=40)
-        out32, g32 = run_backend(splats, camera, features, torch.zeros(3), "numba")
-        out64, g64 = run_backend(splats, camera, features, torch.zeros(3), "numba", dtype=torch.float64)
-        assert out64.features.dtype == torch.float64 and g64["means"].dtype == torch.float64
-        assert float((out64.features - out32.features.double()).detach().abs().max()) <= 1e-4
-        assert rel_err(g64["means"], g32["means"]) <= 1e-3
+        out_r, g_r = run_backend(splats, camera, features, torch.zeros(3), "reference", dtype=torch.float64)
+        out_k, g_k = run_backend(splats, camera, features, torch.zeros(3), "numba", dtype=torch.float64)
+        for name in OUTPUTS:
+            a, b = getattr(out_k, name), getattr(out_r, name)
+            assert a.dtype == torch.float64 and b.dtype == torch.float64, name
+            assert float((a - b).detach().abs().max()) <= 1e-4, name
+        for name, g in g_r.items():
+            assert g is not None and g.dtype == torch.float64 and g_k[name].dtype == torch.float64, name
+            assert rel_err(g_k[name], g) <= 1e-3, name
+
+    def test_alpha_clamp(self):
+        # opacities near 1: many pairs are clamped to alpha 0.99, where alpha has no gradient
+        splats, camera, features = opaque_scene(14)
+        assert (pair_terms(splats, camera)["alpha"] == 0.99).sum() >= 10, "the scene must reach the clamp"
+        background = torch.rand(3, generator=torch.Generator().manual_seed(14))
+        out_r, grads_r = run_backend(splats, camera, features, background, "reference")
+        out_k, grads_k = run_backend(splats, camera, features, background, "numba")
+        for name in OUTPUTS:
+            assert float((getattr(out_k, name) - getattr(out_r, name)).detach().abs().max()) <= 1e-4, name
+        for name, g in grads_r.items():
+            assert rel_err(grads_k[name], g) <= 1e-3, name
+
+    @pytest.mark.parametrize("backend", ["numba", "reference"])
+    def test_alpha_clamp_single_splat(self, backend):
+        # one opaque disk centred on pixel (12, 8): alpha there is clamped to exactly 0.99 and carries no
+        # opacity gradient; the next pixel is below the clamp and does
+        K = np.array([[20.0, 0, 12.5], [0, 20.0, 8.5], [0, 0, 1]])
+        camera = Camera("clamp", "train", 24, 16, K, np.eye(4))
+        splats = Splats(torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([[1.0, 0.0, 0.0, 0.0]]),
+                        torch.tensor([[0.1, 0.1]]), torch.tensor([1.0]))
+        grads = []
+        for pixel in ((8, 12), (8, 13)):
+            sp, feats = with_grad(splats, torch.ones(1, 1))
+            out = render(sp, camera, feats, backend=backend)
+            out.alpha[pixel].backward()
+            grads.append(float(sp.opacities.grad[0]))
+            if pixel == (8, 12):
+                assert float(out.alpha[pixel].detach()) == pytest.approx(0.99, abs=1e-7)
+        # the neighbour: 1 px off the centre is 1 / (20 * 0.1 / 2) = 1 disk unit, alpha = exp(-1/2)
+        assert grads[0] == 0.0
+        assert grads[1] == pytest.approx(math.exp(-0.5), rel=1e-4)
 
     @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
     def test_cuda_tensors_round_trip(self):
@@ -203,6 +317,33 @@ class TestReference:
         inputs = tuple(t.detach().double().requires_grad_() for t in (*splats, features))
         assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
 
+    def test_finite_differences_low_pass_filter(self):
+        # sub-pixel disks (scales 1-2 mm at 2-3 m, focal 10 px): the filter's exponent is the smaller one
+        # at every pixel the splats reach, so its gradient (to means2d, hence the means) is what is checked
+        camera = make_camera(12, 10, focal=10.0)
+        gen = torch.Generator().manual_seed(21)
+        n = 5
+        z = 2.0 + torch.rand(n, generator=gen, dtype=torch.float64)
+        xy = (torch.rand(n, 2, generator=gen, dtype=torch.float64) - 0.5) * 0.8 * z[:, None]
+        means = torch.cat([xy, z[:, None]], 1) @ torch.as_tensor(camera.camera_to_world[:3, :3]).T + torch.as_tensor(
+            camera.camera_to_world[:3, 3])
+        splats = Splats(means, torch.randn(n, 4, generator=gen, dtype=torch.float64),
+                        1e-3 + 1e-3 * torch.rand(n, 2, generator=gen, dtype=torch.float64),
+                        0.3 + 0.5 * torch.rand(n, generator=gen, dtype=torch.float64))
+        features = torch.rand(n, 3, generator=gen, dtype=torch.float64)
+        terms = pair_terms(splats, camera)
+        reached = terms["alpha"] > 0
+        assert reached.sum() >= 3 * n and (terms["sigma_filter"] < terms["sigma_disk"])[reached].all()
+
+        def fn(means, quats, scales, opacities, feats):
+            out = render(Splats(means, quats, scales, opacities), camera, feats, with_distortion=True,
+                         backend="reference")
+            return weighted_loss(out)
+
+        inputs = tuple(t.detach().clone().requires_grad_() for t in (*splats, features))
+        assert all(t.dtype == torch.float64 for t in inputs)
+        assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
+
 
 class TestTrace:
     def test_matches_backward_of_one_hot(self):
@@ -216,7 +357,25 @@ class TestTrace:
         by_reference = trace_by_backward(splats, camera, labels, 6, backend="reference")
         assert float((dense - by_backward).abs().max()) <= 1e-5
         assert float((dense - by_reference).abs().max()) <= 1e-4
-        assert float((trace(splats, camera, labels, 6, backend="reference").to_dense() - by_reference).abs().max()) == 0
+
+    @pytest.mark.parametrize("scene", ["random", "opaque"])
+    @pytest.mark.parametrize("backend", ["numba", "reference"])
+    def test_matches_per_pixel_loop(self, scene, backend):
+        # the opaque scene reaches the 0.99 clamp and stops blending early at many pixels
+        splats, camera, _ = make_scene(4) if scene == "random" else opaque_scene(15)
+        labels = torch.randint(-1, 6, (camera.height, camera.width), generator=torch.Generator().manual_seed(3))
+        oracle = trace_bruteforce(splats, camera, labels, 6)
+        assert (oracle > 0).sum() >= 20
+        if scene == "opaque":
+            assert (pair_terms(splats, camera)["alpha"] == 0.99).sum() >= 10, "the scene must reach the clamp"
+        dense = trace(splats, camera, labels, 6, backend=backend).to_dense().double()
+        assert float((dense - oracle).abs().max()) <= 1e-4
+
+    def test_count_pixels_matches_per_pixel_loop(self):
+        splats, camera, _ = opaque_scene(16)
+        labels = torch.randint(0, 4, (camera.height, camera.width), generator=torch.Generator().manual_seed(4))
+        counts = trace(splats, camera, labels, 4, count_pixels=True).to_dense().double()
+        assert torch.equal(counts, trace_bruteforce(splats, camera, labels, 4, count_pixels=True))
 
     def test_many_labels(self):
         splats, camera, _ = make_scene(7)

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from trace3d.datasets import synthetic as syn
+from trace3d.datasets.synthetic import raycast, raycast_reference
 from trace3d.errors import ConfigError, Trace3DError
 from trace3d.scene import Camera, Scene
 
@@ -140,18 +141,18 @@ def test_no_view_dependent_shading():
         a, b = (cams[i] for i in rng.choice(len(cams), 2, replace=False))
         pixel = np.array([rng.uniform(0, a.width), rng.uniform(0, a.height), 1.0])
         d_a = a.camera_to_world[:3, :3] @ np.linalg.inv(a.K) @ pixel
-        t_a, p_a, f_a = syn._trace(*a.center, *d_a, 1e-6, np.inf, *geometry, False)
+        t_a, p_a, f_a = raycast.cast_ray(*a.center, *d_a, 1e-6, np.inf, *geometry, False)
         point = a.center + t_a * d_a
         d_b = point - b.center
-        t_b, p_b, f_b = syn._trace(*b.center, *d_b, 1e-6, np.inf, *geometry, False)
+        t_b, p_b, f_b = raycast.cast_ray(*b.center, *d_b, 1e-6, np.inf, *geometry, False)
         if p_b != p_a or abs(t_b - 1.0) > 1e-9:
             continue  # occluded from b
         in_front = (b.world_to_camera[:3, :3] @ d_b)[2] > 0
-        color_a = np.array(syn._shade(*a.center, *d_a, t_a, p_a, f_a, *geometry, *shading))
-        color_b = np.array(syn._shade(*b.center, *d_b, t_b, p_b, f_b, *geometry, *shading))
+        color_a = np.array(raycast._shade(*a.center, *d_a, t_a, p_a, f_a, *geometry, *shading))
+        color_b = np.array(raycast._shade(*b.center, *d_b, t_b, p_b, f_b, *geometry, *shading))
         np.testing.assert_allclose(color_a, color_b, rtol=1e-7, atol=1e-10)
         if compared < 8:
-            ref = syn._ref_shade(packed, b.center[None], d_b[None], params.ambient, True)[0]
+            ref = raycast_reference._ref_shade(packed, b.center[None], d_b[None], params.ambient, True)[0]
             np.testing.assert_allclose(color_b, ref, rtol=1e-7, atol=1e-10)
         compared += int(in_front)
     assert compared >= 5
@@ -187,13 +188,13 @@ def test_primitive_intersections_match_reference():
         origins[:40] *= 0.2 * size / np.abs(origins[:40]).max(1, keepdims=True)  # rays starting inside
         dirs = rng.uniform(-0.9, 0.9, (400, 3)) * np.r_[size[:2].max(), size[:2].max(), size[2]] - origins
         dirs[40:90, 2] = 0.0  # horizontal rays (parallel to the caps)
-        fast = np.array([syn._intersect_local(shape, *size, *o, *d, 1e-9)[0] for o, d in zip(origins, dirs)])
+        fast = np.array([raycast._intersect_local(shape, *size, *o, *d, 1e-9)[0] for o, d in zip(origins, dirs)])
         if shape == syn.SHAPE_BOX:
-            slow = syn._ref_hit_box(origins, dirs, size, 1e-9)
+            slow = raycast_reference._ref_hit_box(origins, dirs, size, 1e-9)
         elif shape == syn.SHAPE_ELLIPSOID:
-            slow = syn._ref_hit_ellipsoid(origins, dirs, size, 1e-9)
+            slow = raycast_reference._ref_hit_ellipsoid(origins, dirs, size, 1e-9)
         else:
-            slow = syn._ref_hit_frustum(origins, dirs, size, 1e-9)[0]
+            slow = raycast_reference._ref_hit_frustum(origins, dirs, size, 1e-9)[0]
         assert np.isfinite(fast).sum() > 200
         np.testing.assert_allclose(fast, slow, rtol=1e-9, atol=1e-12)
 

@@ -11,7 +11,8 @@ import torch
 
 from trace3d.errors import ConfigError, Trace3DError
 from trace3d.gaussians import GaussianModel, init_from_points
-from trace3d.losses import _ssim_map_reference, depth_to_normal, depth_to_points, normal_consistency_loss, photometric_loss, psnr, ssim, ssim_map
+from trace3d.geometry import depth_to_normal, depth_to_points
+from trace3d.losses import _ssim_map_reference, normal_consistency_loss, photometric_loss, psnr, ssim, ssim_map
 from trace3d.params import from_mapping
 from trace3d.pointcloud import write_points_ply
 from trace3d.scene import Camera, Scene, write_cameras, write_frame

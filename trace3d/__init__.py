@@ -1,10 +1,10 @@
-"""trace3d: consistent 2D-segmentation lifting into 2D Gaussian Splatting scenes (Trace3D, ICCV 2025)."""
+"""trace3d: consistent 2D-segmentation lifting into 2D Gaussian Splatting scenes (Trace3D, ICCV 2025).
 
-import os as _os
-
-# Idle OpenMP threads of torch spin and steal the cores numba's kernels need (about 2x slower
-# forward+backward on 2 busy cores); let them sleep unless the user chose otherwise.  This must
-# run before torch is imported, which is why it lives in the package's __init__.
-_os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+Importing the package changes nothing in the process (no environment variables, no threads): the
+settings that make the CPU kernels fast on a busy machine (``OMP_WAIT_POLICY=PASSIVE``, a numba
+cache folder) are made by the entry points — ``trace3d`` (:func:`trace3d.cli.main`), the Makefile,
+the Snakemake rules (``rules/common.smk``) and ``tests/conftest.py``; in a notebook, set them in the
+environment before starting Python (see docs/performance.md).
+"""
 
 __version__ = "0.1.0"

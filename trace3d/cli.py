@@ -18,10 +18,18 @@ from .errors import Trace3DError
 log = logging.getLogger("trace3d")
 
 
-def _setup_numba_cache() -> None:
-    # Numba's compile cache goes inside the checkout unless the user chose a location.
-    if "NUMBA_CACHE_DIR" not in os.environ:
-        os.environ["NUMBA_CACHE_DIR"] = str(Path(__file__).resolve().parent.parent / ".numba_cache")
+def _entry_point_environment() -> None:
+    """Process settings of the ``trace3d`` command, made here rather than on import of the library.
+
+    ``OMP_WAIT_POLICY=PASSIVE``: OpenMP threads that spin while waiting (the GNU default) steal the
+    CPU from numba's and torch's workers on a busy machine; sleeping waits halved forward + backward
+    wall time on the 2-core box (docs/performance.md).  It takes effect only if set before torch and
+    numba load their OpenMP runtime, which the step handlers import lazily, after this call.  An
+    explicit value in the environment is respected.  Numba's compile cache is left to
+    ``NUMBA_CACHE_DIR`` when set (the Makefile and the rules point it at the checkout's
+    ``.numba_cache/``), else to numba's default (``__pycache__`` beside the sources).
+    """
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -202,7 +210,7 @@ def _cmd_bench(args: argparse.Namespace) -> None:
 
         result = run_bench(quick=args.quick)
     elif args.name == "synthetic":
-        from .datasets.synthetic import run_bench
+        from .datasets.synthetic.bench import run_bench
 
         result = run_bench(quick=args.quick)
     elif args.name == "trace":
@@ -369,7 +377,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    _setup_numba_cache()
+    _entry_point_environment()
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(

@@ -42,6 +42,7 @@ import torch
 import torch.nn.functional as F
 
 from .errors import SceneFormatError, Trace3DError
+from .geometry import quat_to_rotmat
 from .io import atomic_file
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -124,20 +125,6 @@ def eval_sh(degree: int, coeffs: torch.Tensor, directions: torch.Tensor) -> torc
         + SH_C3[5] * z * (xx - yy) * coeffs[:, 14]
         + SH_C3[6] * x * (xx - 3.0 * yy) * coeffs[:, 15]
     )
-
-
-def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """[N, 4] quaternions (w, x, y, z; normalised here) -> [N, 3, 3] rotation matrices."""
-    q = F.normalize(quats, dim=-1)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(-1, 3, 3)
 
 
 def quats_aligning_z_to(normals: torch.Tensor) -> torch.Tensor:
@@ -594,67 +581,6 @@ def init_from_points(
     )
 
 
-def depth_points(
-    scene: "Scene",
-    cameras=None,
-    stride: int = 4,
-    max_points: int | None = 100_000,
-    seed: int = 0,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Back-project ground-truth depth maps on a pixel grid of the given cameras.
-
-    Args:
-        scene: a scene with ``depth/`` maps.
-        cameras: cameras to use (default: the scene's train cameras). Their names index the
-            scene's images and depth maps, their poses place the points.
-        stride: take every ``stride``-th pixel in x and y.
-        max_points: randomly (seeded) keep at most this many points.
-    Returns:
-        points [P, 3] world, colours [P, 3] float in [0, 1], normals [P, 3] world (facing the
-        camera that saw the point; zero where the depth gradient is undefined).
-    """
-    from .losses import depth_to_normal, depth_to_points
-
-    if not scene.has_depth:
-        raise Trace3DError(f"{scene.root}: init 'depth' needs depth maps, but the scene has no depth/ folder.")
-    if stride < 1:
-        raise Trace3DError(f"depth init: stride must be >= 1, got {stride}.")
-    cameras = scene.train_cameras if cameras is None else cameras
-    all_points, all_colors, all_normals = [], [], []
-    for cam in cameras:
-        depth = torch.from_numpy(scene.depth(cam.name)).double()
-        if depth.shape != (cam.height, cam.width):
-            raise SceneFormatError(
-                f"{scene.depth_path(cam.name)}: depth map is {depth.shape[1]}x{depth.shape[0]}, camera is {cam.width}x{cam.height}."
-            )
-        rgb = torch.from_numpy(scene.image(cam.name)).double() / 255.0
-        points_cam = depth_to_points(depth, cam.K)
-        normals_cam = depth_to_normal(depth, cam.K)
-        sel = torch.zeros_like(depth, dtype=torch.bool)
-        sel[stride // 2 :: stride, stride // 2 :: stride] = True
-        sel &= depth > 0
-        # the finite-difference normal is undefined next to invalid depth
-        valid = depth > 0
-        neighbours_valid = torch.zeros_like(valid)
-        neighbours_valid[1:-1, 1:-1] = valid[:-2, 1:-1] & valid[2:, 1:-1] & valid[1:-1, :-2] & valid[1:-1, 2:]
-        normals_cam = normals_cam * neighbours_valid[..., None]
-        c2w = torch.from_numpy(cam.camera_to_world)
-        rot, trans = c2w[:3, :3], c2w[:3, 3]
-        all_points.append(points_cam[sel] @ rot.T + trans)
-        all_colors.append(rgb[sel])
-        all_normals.append(normals_cam[sel] @ rot.T)
-    points = torch.cat(all_points).float()
-    colors = torch.cat(all_colors).float()
-    normals = torch.cat(all_normals).float()
-    if points.shape[0] == 0:
-        raise Trace3DError(f"{scene.root}: depth init found no valid depth pixels in the train views.")
-    if max_points is not None and points.shape[0] > max_points:
-        generator = torch.Generator().manual_seed(int(seed))
-        keep = torch.randperm(points.shape[0], generator=generator)[:max_points]
-        points, colors, normals = points[keep], colors[keep], normals[keep]
-    return points, colors, normals
-
-
 def init_from_depth(
     scene: "Scene",
     cameras=None,
@@ -665,12 +591,14 @@ def init_from_depth(
     use_normals: bool = True,
     seed: int = 0,
 ) -> GaussianModel:
-    """Gaussians on the back-projected depth of the train views (see :func:`depth_points`).
+    """Gaussians on the back-projected depth of the train views (see :func:`trace3d.datasets.depth_init.depth_points_and_normals`).
 
     With ``use_normals`` each disk starts perpendicular to the depth-map normal (random rotation
     where that normal is undefined).
     """
-    points, colors, normals = depth_points(scene, cameras, stride, max_points, seed)
+    from .datasets.depth_init import depth_points_and_normals
+
+    points, colors, normals = depth_points_and_normals(scene, cameras, stride, max_points, seed)
     model = init_from_points(points, colors, sh_degree=sh_degree, opacity=opacity, seed=seed)
     if use_normals:
         valid = normals.norm(dim=-1) > 0.5

@@ -6,8 +6,6 @@ Images are ``[H, W, C]`` tensors (channels last, as the renderer returns them) w
 - :func:`ssim`: structural similarity with an 11x11 Gaussian window (sigma 1.5), the 3DGS/2DGS
   training loss formulation (zero-padded "same" convolution, constants C1 = 0.01^2, C2 = 0.03^2).
 - :func:`photometric_loss`: ``(1 - lambda_dssim) * L1 + lambda_dssim * (1 - SSIM)`` (2DGS: 0.2).
-- :func:`depth_to_points` / :func:`depth_to_normal`: the surface normal of a depth map by central
-  finite differences of its back-projected points, in camera space, facing the camera.
 - :func:`normal_consistency_loss`: the 2DGS regulariser ``mean(1 - <n_rendered, alpha * N_depth>)``.
 - :func:`psnr`.
 """
@@ -19,6 +17,8 @@ import math
 import numpy as np
 import torch
 import torch.nn.functional as F
+
+from .geometry import depth_to_normal, depth_to_points  # noqa: F401  (their home is trace3d.geometry; kept importable here)
 
 SSIM_C1 = 0.01**2
 SSIM_C2 = 0.03**2
@@ -131,48 +131,6 @@ def psnr(image: torch.Tensor, target: torch.Tensor, exact: bool = True) -> float
     if mse <= 0.0:
         return math.inf
     return -10.0 * math.log10(mse)
-
-
-def depth_to_points(depth: torch.Tensor, K: np.ndarray | torch.Tensor) -> torch.Tensor:
-    """Back-project a depth map (camera z) to camera-space points.
-
-    Args:
-        depth: [H, W] depth along the optical axis.
-        K: [3, 3] intrinsics (pixel centres at +0.5).
-    Returns:
-        [H, W, 3] points in camera space (OpenCV: x right, y down, z forward).
-    """
-    height, width = depth.shape
-    K = torch.as_tensor(np.asarray(K) if not torch.is_tensor(K) else K, dtype=depth.dtype, device=depth.device)
-    xs = torch.arange(width, dtype=depth.dtype, device=depth.device) + 0.5
-    ys = torch.arange(height, dtype=depth.dtype, device=depth.device) + 0.5
-    grid_y, grid_x = torch.meshgrid(ys, xs, indexing="ij")
-    # K^-1 (x, y, 1) for a general upper-triangular K (with skew).
-    fx, fy, cx, cy, skew = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
-    ray_y = (grid_y - cy) / fy
-    ray_x = (grid_x - cx - skew * ray_y) / fx
-    rays = torch.stack([ray_x, ray_y, torch.ones_like(ray_x)], dim=-1)
-    return rays * depth[..., None]
-
-
-def depth_to_normal(depth: torch.Tensor, K: np.ndarray | torch.Tensor) -> torch.Tensor:
-    """Surface normal of a depth map by central finite differences, in camera space.
-
-    The normal is ``normalize(dP/dy x dP/dx)`` of the back-projected points P, which faces the camera
-    (negative z for a fronto-parallel plane), matching the renderer's normal convention. The
-    one-pixel border, where central differences are undefined, is zero.
-
-    Args:
-        depth: [H, W] depth along the optical axis.
-        K: [3, 3] intrinsics.
-    Returns:
-        [H, W, 3] unit normals (zero on the border).
-    """
-    points = depth_to_points(depth, K)
-    d_dx = points[1:-1, 2:] - points[1:-1, :-2]
-    d_dy = points[2:, 1:-1] - points[:-2, 1:-1]
-    normal = F.normalize(torch.cross(d_dy, d_dx, dim=-1), dim=-1)
-    return F.pad(normal.permute(2, 0, 1), (1, 1, 1, 1)).permute(1, 2, 0)
 
 
 def normal_consistency_loss(

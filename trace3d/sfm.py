@@ -55,6 +55,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .errors import ConfigError, Trace3DError
+from .geometry import backproject_pixels
 from .io import write_json
 from .params import from_mapping, to_dict
 from .pointcloud import align_cameras, rotation_angle_deg, write_points_ply
@@ -315,11 +316,7 @@ def points_from_depth(scene: Scene, total: int, seed: int) -> tuple[np.ndarray, 
             continue
         pick = rng.choice(valid, size=min(per_frame, len(valid)), replace=False)
         v, u = np.divmod(pick, cam.width)
-        z = depth.ravel()[pick].astype(np.float64)
-        pix = np.stack([u + 0.5, v + 0.5, np.ones_like(z)], axis=1)
-        cam_pts = (pix @ np.linalg.inv(cam.K).T) * z[:, None]
-        c2w = cam.camera_to_world
-        all_xyz.append(cam_pts @ c2w[:3, :3].T + c2w[:3, 3])
+        all_xyz.append(backproject_pixels(cam, v, u, depth.ravel()[pick]))
         all_rgb.append(scene.image(cam.name).reshape(-1, 3)[pick])
     if not all_xyz:
         return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint8)

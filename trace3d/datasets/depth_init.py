@@ -1,11 +1,17 @@
-"""Initial points from a scene's dataset depth (``init: depth``).
+"""Initial points from a scene's dataset depth (``init: depth``): the one home of depth-map back-projection.
 
 COLMAP struggles on Replica's texture-poor rooms, so the 2DGS fit can start instead from the
 dataset's own depth maps, back-projected into world space.  Works for any canonical scene with a
 ``depth/`` folder (z-depth, 16-bit millimetres, 0 = invalid).
 
-Pixel convention: pixel (i, j) has its centre at (i + 0.5, j + 0.5) in the coordinates that ``K``
-maps to (see :mod:`trace3d.scene`).
+- :func:`backproject_depth` / :func:`depth_points`: numpy world points (and colours) of a strided
+  pixel grid; :func:`_backproject_depth_reference` is the per-pixel test oracle.
+- :func:`depth_points_and_normals`: torch points, colours and depth-map normals of the train views,
+  what :func:`trace3d.gaussians.init_from_depth` places its disks on.
+
+The pixel-to-point formulas themselves live in :mod:`trace3d.geometry`.  Pixel convention: pixel
+(i, j) has its centre at (i + 0.5, j + 0.5) in the coordinates that ``K`` maps to (see
+:mod:`trace3d.scene`).
 """
 
 from __future__ import annotations
@@ -13,9 +19,11 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+import torch
 from tqdm import tqdm
 
-from ..errors import SceneFormatError
+from ..errors import SceneFormatError, Trace3DError
+from ..geometry import backproject_pixels, depth_to_normal, depth_to_points
 from ..scene import Camera, Scene
 
 log = logging.getLogger(__name__)
@@ -38,11 +46,7 @@ def backproject_depth(camera: Camera, depth: np.ndarray, stride: int = 1) -> tup
     z = depth[rows, cols].astype(np.float64)
     keep = np.isfinite(z) & (z > 0)
     rows, cols, z = rows[keep], cols[keep], z[keep]
-    pixels_h = np.stack([cols + 0.5, rows + 0.5, np.ones_like(z)], axis=1)  # [P, 3]
-    cam_points = (pixels_h @ np.linalg.inv(camera.K).T) * z[:, None]  # [P, 3], camera z == depth
-    c2w = camera.camera_to_world
-    xyz = cam_points @ c2w[:3, :3].T + c2w[:3, 3]
-    return xyz, np.stack([rows, cols], axis=1)
+    return backproject_pixels(camera, rows, cols, z), np.stack([rows, cols], axis=1)
 
 
 def _backproject_depth_reference(camera: Camera, depth: np.ndarray, stride: int = 1) -> np.ndarray:
@@ -113,3 +117,62 @@ def depth_points(
         xyz, rgb = xyz[keep], rgb[keep]
     log.info("depth init: %d points from %d views (stride %d)", xyz.shape[0], len(cameras), stride)
     return xyz, rgb
+
+
+def depth_points_and_normals(
+    scene: Scene,
+    cameras=None,
+    stride: int = 4,
+    max_points: int | None = 100_000,
+    seed: int = 0,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Back-project ground-truth depth maps on a pixel grid of the given cameras.
+
+    Args:
+        scene: a scene with ``depth/`` maps.
+        cameras: cameras to use (default: the scene's train cameras). Their names index the
+            scene's images and depth maps, their poses place the points.
+        stride: take every ``stride``-th pixel in x and y.
+        max_points: randomly (seeded) keep at most this many points.
+    Returns:
+        points [P, 3] world, colours [P, 3] float in [0, 1], normals [P, 3] world (facing the
+        camera that saw the point; zero where the depth gradient is undefined).
+    """
+    if not scene.has_depth:
+        raise Trace3DError(f"{scene.root}: init 'depth' needs depth maps, but the scene has no depth/ folder.")
+    if stride < 1:
+        raise Trace3DError(f"depth init: stride must be >= 1, got {stride}.")
+    cameras = scene.train_cameras if cameras is None else cameras
+    all_points, all_colors, all_normals = [], [], []
+    for cam in cameras:
+        depth = torch.from_numpy(scene.depth(cam.name)).double()
+        if depth.shape != (cam.height, cam.width):
+            raise SceneFormatError(
+                f"{scene.depth_path(cam.name)}: depth map is {depth.shape[1]}x{depth.shape[0]}, camera is {cam.width}x{cam.height}."
+            )
+        rgb = torch.from_numpy(scene.image(cam.name)).double() / 255.0
+        points_cam = depth_to_points(depth, cam.K)
+        normals_cam = depth_to_normal(depth, cam.K)
+        sel = torch.zeros_like(depth, dtype=torch.bool)
+        sel[stride // 2 :: stride, stride // 2 :: stride] = True
+        sel &= depth > 0
+        # the finite-difference normal is undefined next to invalid depth
+        valid = depth > 0
+        neighbours_valid = torch.zeros_like(valid)
+        neighbours_valid[1:-1, 1:-1] = valid[:-2, 1:-1] & valid[2:, 1:-1] & valid[1:-1, :-2] & valid[1:-1, 2:]
+        normals_cam = normals_cam * neighbours_valid[..., None]
+        c2w = torch.from_numpy(cam.camera_to_world)
+        rot, trans = c2w[:3, :3], c2w[:3, 3]
+        all_points.append(points_cam[sel] @ rot.T + trans)
+        all_colors.append(rgb[sel])
+        all_normals.append(normals_cam[sel] @ rot.T)
+    points = torch.cat(all_points).float()
+    colors = torch.cat(all_colors).float()
+    normals = torch.cat(all_normals).float()
+    if points.shape[0] == 0:
+        raise Trace3DError(f"{scene.root}: depth init found no valid depth pixels in the train views.")
+    if max_points is not None and points.shape[0] > max_points:
+        generator = torch.Generator().manual_seed(int(seed))
+        keep = torch.randperm(points.shape[0], generator=generator)[:max_points]
+        points, colors, normals = points[keep], colors[keep], normals[keep]
+    return points, colors, normals

@@ -41,7 +41,7 @@ from ..errors import Trace3DError
 from ..io import atomic_file, write_json
 from ..params import from_mapping, to_dict
 from ..scene import Camera, read_rgb, write_cameras, write_rgb
-from .replica import downscale_rgb, rigid_inverse, scale_intrinsics
+from .common import downscale_rgb, rigid_inverse, scale_intrinsics
 
 log = logging.getLogger(__name__)
 

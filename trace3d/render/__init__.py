@@ -6,14 +6,6 @@ Public API::
     from trace3d.render import Splats, RenderOutput, render, trace, trace_argmax
 """
 
-import os
-
-# OpenMP threads that spin while waiting (the GNU default) steal the CPU from numba's and torch's
-# workers on a busy machine; sleeping waits halved fwd+bwd wall time on the 2-core box.  Takes
-# effect only if set before torch / numba load their OpenMP runtime (set it in the environment to
-# be sure; an explicit value is respected).
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
 from .core import (BACKENDS, RenderOutput, render, set_default_backend, trace, trace_argmax,
                    trace_by_backward)
 from .projection import Projected, Splats, project, quat_to_rotmat

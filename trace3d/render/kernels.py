@@ -1,5 +1,10 @@
 """CPU tile kernels (numba) for 2DGS blending, their hand-written backward, and GIT tracing.
 
+This file is longer than the others (~900 lines) on purpose: the forward, backward and trace kernels
+must make bit-identical decisions for every pixel-splat pair, so they sit beside the inline helpers
+and the field constants they share (:func:`splat_geometry`, :func:`eval_lane`, the ``F_*`` offsets),
+with the thin torch glue that packs their inputs at the end.
+
 Kernel boundary (small on purpose, so that a CUDA back end can slot in behind it): per splat the
 kernels read
 
@@ -145,6 +150,13 @@ def exp_neg(s):
     return p
 
 
+@njit(inline="always")
+def splat_geometry(egeom, j):
+    """The 15 geometry fields of tile-list entry ``j``: A (3), B (3), D (3), T_w (3), means2d (2), opacity."""
+    return (egeom[j, 0], egeom[j, 1], egeom[j, 2], egeom[j, 3], egeom[j, 4], egeom[j, 5], egeom[j, 6], egeom[j, 7],
+            egeom[j, 8], egeom[j, 9], egeom[j, 10], egeom[j, 11], egeom[j, 12], egeom[j, 13], egeom[j, 14])
+
+
 @njit(inline="always", fastmath=FASTMATH)
 def eval_lane(x, e0, e1, e2, b0, b1, b2, mx, dy2, opac, tw0, tw1, tw2, near32):
     """One pixel-splat pair: (alpha or 0 when skipped, depth z, u, v, 1 / c2, disk term used, exp(-sigma)).
@@ -243,21 +255,7 @@ def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, ne
             lx1 = min(ebox[j, 2], px1) - px0
             y0 = max(ebox[j, 1], py0)
             y1 = min(ebox[j, 3], py1)
-            a0 = egeom[j, 0]
-            a1 = egeom[j, 1]
-            a2 = egeom[j, 2]
-            b0 = egeom[j, 3]
-            b1 = egeom[j, 4]
-            b2 = egeom[j, 5]
-            d0 = egeom[j, 6]
-            d1 = egeom[j, 7]
-            d2 = egeom[j, 8]
-            tw0 = egeom[j, 9]
-            tw1 = egeom[j, 10]
-            tw2 = egeom[j, 11]
-            mx = egeom[j, 12]
-            my = egeom[j, 13]
-            opac = egeom[j, 14]
+            a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2, mx, my, opac = splat_geometry(egeom, j)
             visited += (y1 - y0) * TILE
             v0 = vals[g, 0] if k_ch > 0 else zero
             v1 = vals[g, 1] if k_ch > 1 else zero
@@ -422,21 +420,7 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
                 x1 = min(ebox[j, 2], px1)
                 y0 = max(ebox[j, 1], py0)
                 y1 = min(ebox[j, 3], py1)
-                a0 = egeom[j, 0]
-                a1 = egeom[j, 1]
-                a2 = egeom[j, 2]
-                b0 = egeom[j, 3]
-                b1 = egeom[j, 4]
-                b2 = egeom[j, 5]
-                d0 = egeom[j, 6]
-                d1 = egeom[j, 7]
-                d2 = egeom[j, 8]
-                tw0 = egeom[j, 9]
-                tw1 = egeom[j, 10]
-                tw2 = egeom[j, 11]
-                mx = egeom[j, 12]
-                my = egeom[j, 13]
-                opac = egeom[j, 14]
+                a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2, mx, my, opac = splat_geometry(egeom, j)
                 # per-splat gradient sums over this tile
                 ga0 = np.float32(0.0)
                 ga1 = np.float32(0.0)
@@ -674,21 +658,7 @@ def trace_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, labe
             x1 = min(ebox[j, 2], px1)
             y0 = max(ebox[j, 1], py0)
             y1 = min(ebox[j, 3], py1)
-            a0 = egeom[j, 0]
-            a1 = egeom[j, 1]
-            a2 = egeom[j, 2]
-            b0 = egeom[j, 3]
-            b1 = egeom[j, 4]
-            b2 = egeom[j, 5]
-            d0 = egeom[j, 6]
-            d1 = egeom[j, 7]
-            d2 = egeom[j, 8]
-            tw0 = egeom[j, 9]
-            tw1 = egeom[j, 10]
-            tw2 = egeom[j, 11]
-            mx = egeom[j, 12]
-            my = egeom[j, 13]
-            opac = egeom[j, 14]
+            a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2, mx, my, opac = splat_geometry(egeom, j)
             for py in range(y0, y1):
                 y = np.float32(py) + np.float32(0.5)
                 e0 = a0 + d0 * y

@@ -3,7 +3,7 @@
 Everything here is differentiable with torch autograd; both the dense reference renderer and the
 numba tile kernels consume its output, so the two back ends share one definition of the geometry.
 
-Conventions (see ``/work/shared/notes/2dgs-math.md``): OpenCV camera (x right, y down, z forward),
+Conventions (the formulas are written out in ``docs/2dgs-math.md``): OpenCV camera (x right, y down, z forward),
 pixel centres at integer + 0.5.  A splat k has centre p, rotation R = [t_u | t_v | t_w] from its
 quaternion, scales (s_u, s_v), opacity o.  Its *ray transform* is
 
@@ -34,6 +34,7 @@ from numba import njit, prange
 from torch import Tensor
 
 from ..errors import Trace3DError
+from ..geometry import quat_to_rotmat
 from ..scene import Camera
 
 ALPHA_MIN = 1.0 / 255.0  # skip a pair whose alpha is below this
@@ -83,24 +84,6 @@ class Projected:
     opacities: Tensor
     boxes: np.ndarray
     visible: Tensor
-
-
-def quat_to_rotmat(quats: Tensor) -> Tensor:
-    """Rotation matrices from quaternions.
-
-    Args:
-        quats: [N, 4] (w, x, y, z), any non-zero norm.
-    Returns:
-        [N, 3, 3] rotations whose columns are the splat's axes t_u, t_v, t_w.
-    """
-    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    w, x, y, z = q.unbind(-1)
-    rows = [
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ]
-    return torch.stack(rows, dim=-1).reshape(quats.shape[:-1] + (3, 3))
 
 
 def camera_tensors(camera: Camera, device: torch.device, dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor]:

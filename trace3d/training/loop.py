@@ -43,7 +43,8 @@ from tqdm import tqdm
 
 from ..errors import ConfigError, Trace3DError
 from ..gaussians import GaussianModel
-from ..losses import depth_to_normal, normal_consistency_loss, photometric_loss, psnr, ssim
+from ..geometry import depth_to_normal
+from ..losses import normal_consistency_loss, photometric_loss, psnr, ssim
 from ..scene import Camera
 from .optimizer import GaussianOptimizer, learning_rates
 from .params import TrainParams

@@ -1,0 +1,11 @@
+"""Process settings for the test run, made here because importing trace3d makes none (see
+trace3d/__init__.py): sleeping OpenMP waits (torch's idle workers otherwise spin and steal the cores
+numba's kernels need) and numba's compile cache in the checkout, so that only the first run in a
+clone compiles.  Both must be set before torch and numba are imported, which happens when pytest
+imports the test modules, after this file.  An explicit value in the environment is respected."""
+
+import os
+from pathlib import Path
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(__file__).resolve().parent.parent / ".numba_cache"))
