@@ -74,6 +74,11 @@ def mask_args(wildcards):
     return f"--source {source} --params {params}"
 
 
+def mask_source(wildcards):
+    """The scene's mask source (simulated | files | sam): SAM needs more threads, memory and time."""
+    return json.loads(step_params(wildcards.scene, "masks")).get("source", "simulated")
+
+
 def quoted_params(step):
     """A params function returning the step's parameters as one shell-quoted JSON word."""
 

@@ -47,6 +47,7 @@ from ..errors import SceneFormatError, Trace3DError
 from ..io import write_json
 from ..params import from_mapping, to_dict
 from ..scene import Camera, ObjectTable, SceneObject, read_rgb, write_cameras, write_rgb, write_u16
+from .common import downscale_rgb, scale_intrinsics  # noqa: F401  (importers share them)
 
 log = logging.getLogger(__name__)
 
@@ -151,14 +152,6 @@ def folder_name(scene: str) -> str | None:
 # ----------------------------------------------------------------------------------------------
 
 
-def downscale_rgb(rgb: np.ndarray, factor: int) -> np.ndarray:
-    """[H, W, 3] -> [H // f, W // f, 3] by block averaging (right/bottom remainder cropped)."""
-    if factor == 1:
-        return rgb
-    h, w = rgb.shape[0] // factor, rgb.shape[1] // factor
-    return cv2.resize(rgb[: h * factor, : w * factor], (w, h), interpolation=cv2.INTER_AREA)
-
-
 def _blocks(array: np.ndarray, factor: int) -> np.ndarray:
     """[H, W] -> [H // f, W // f, f * f] non-overlapping blocks (right/bottom remainder cropped)."""
     h, w = array.shape[0] // factor, array.shape[1] // factor
@@ -195,13 +188,6 @@ def downscale_depth(depth: np.ndarray, factor: int, max_ratio: float = 1.1) -> n
     out = factor * factor / (1.0 / safe).sum(-1)
     out = np.where(valid & smooth, out, 0.0)
     return np.round(out).astype(depth.dtype) if np.issubdtype(depth.dtype, np.integer) else out.astype(depth.dtype)
-
-
-def scale_intrinsics(K: np.ndarray, scale: float) -> np.ndarray:
-    """[3, 3] intrinsics of the image resized by ``scale`` (pixel centres at +0.5, origin kept)."""
-    out = np.array(K, dtype=np.float64)
-    out[:2] *= scale
-    return out
 
 
 def rigid_inverse(camera_to_world: np.ndarray, where: str, tol: float = 1e-2) -> np.ndarray:
