@@ -202,3 +202,33 @@ def test_trace_without_poses_is_refused(imported):
 
     with pytest.raises(SceneFormatError, match="poses are unknown"):
         load_fitted(imported, None, imported.root)
+
+
+def test_readme_config_example_dry_runs(tmp_path):
+    """The README's `Your own photos` config, with data_root pointing here: schema-valid, and the
+    scene rule imports the photo folder with the importer parameters."""
+    import os
+    import re
+    import shutil
+    import subprocess
+    import sys
+
+    import yaml
+
+    repo = Path(__file__).resolve().parent.parent
+    snakemake = shutil.which("snakemake", path=str(Path(sys.executable).parent)) or shutil.which("snakemake")
+    if snakemake is None:
+        pytest.skip("snakemake is not installed")
+    section = (repo / "README.md").read_text().split("## Your own photos", 1)[1]
+    config = yaml.safe_load(re.search(r"```yaml\n(.*?)```", section, flags=re.S).group(1))
+    assert config["scenes"]["plant"]["kind"] == "images"
+    config["data_root"] = str(tmp_path / "captures")
+    config["results"] = str(tmp_path / "results")
+    (tmp_path / "my.yaml").write_text(yaml.safe_dump(config))
+    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
+    out = subprocess.run([snakemake, "-s", str(repo / "Snakefile"), "-n", "-p", "--cores", "2",
+                          "--configfile=my.yaml", f"{tmp_path}/results/plant/gaussians"],
+                         cwd=tmp_path, capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert f"scene images --source {tmp_path}/captures/plant" in out.stdout
+    assert '"max_side": 640' in out.stdout and "trace3d --threads 2 poses" in out.stdout
