@@ -128,6 +128,8 @@ def read_photo(path: Path) -> Photo:
             exif = img.getexif()
             upright = ImageOps.exif_transpose(img)
             rgb = np.asarray(upright.convert("RGB"), dtype=np.uint8)
+    except Image.DecompressionBombError as exc:
+        raise Trace3DError(f"{path}: photo is larger than PIL's safety limit ({exc}).") from exc
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
         raise Trace3DError(f"{path}: photo is corrupt or not an image ({exc}).") from exc
     sub = exif.get_ifd(EXIF_IFD) if exif else {}
