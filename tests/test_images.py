@@ -232,3 +232,16 @@ def test_readme_config_example_dry_runs(tmp_path):
     assert out.returncode == 0, out.stdout + out.stderr
     assert f"scene images --source {tmp_path}/captures/plant" in out.stdout
     assert '"max_side": 640' in out.stdout and "trace3d --threads 2 poses" in out.stdout
+
+
+def test_tracing_table_plots_without_ground_truth(tmp_path):
+    """A user's scene has no ground truth: the tracing table still writes its plot (the rule's output)."""
+    from trace3d.report.tracing import write_tracing_table
+
+    merge = tmp_path / "plant" / "merge-paper"
+    merge.mkdir(parents=True)
+    (merge / "merge.json").write_text(json.dumps({"params": {"preset": "paper"}, "mean_patches": 6.7,
+                                                  "mean_instances": 5.1, "merged_pairs": 12, "seconds": 1.0}))
+    table = write_tracing_table([merge], None, tmp_path / "tracing.md", tmp_path / "plots" / "merge.png")
+    assert "ARI before" not in table and (tmp_path / "plots" / "merge.png").stat().st_size > 1000
+    assert "| plant " in (tmp_path / "tracing.md").read_text()
