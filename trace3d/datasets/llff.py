@@ -41,8 +41,7 @@ from ..errors import Trace3DError
 from ..io import atomic_file, write_json
 from ..params import from_mapping, to_dict
 from ..scene import Camera, read_rgb, write_cameras, write_rgb
-from .common import IMAGE_EXTENSIONS, downscale_rgb, every_nth_split, list_images, scale_intrinsics
-from .replica import rigid_inverse
+from .common import IMAGE_EXTENSIONS, downscale_rgb, every_nth_split, list_images, rigid_inverse, scale_intrinsics
 
 log = logging.getLogger(__name__)
 

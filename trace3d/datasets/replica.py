@@ -47,7 +47,7 @@ from ..errors import SceneFormatError, Trace3DError
 from ..io import write_json
 from ..params import from_mapping, to_dict
 from ..scene import Camera, ObjectTable, SceneObject, read_rgb, write_cameras, write_rgb, write_u16
-from .common import downscale_rgb, scale_intrinsics  # noqa: F401  (importers share them)
+from .common import downscale_depth, downscale_labels, downscale_rgb, rigid_inverse, scale_intrinsics
 
 log = logging.getLogger(__name__)
 
@@ -145,76 +145,6 @@ def folder_name(scene: str) -> str | None:
     if scene in SCENE_FOLDERS.values():
         return scene
     return None
-
-
-# ----------------------------------------------------------------------------------------------
-# Image resampling shared by the importers
-# ----------------------------------------------------------------------------------------------
-
-
-def _blocks(array: np.ndarray, factor: int) -> np.ndarray:
-    """[H, W] -> [H // f, W // f, f * f] non-overlapping blocks (right/bottom remainder cropped)."""
-    h, w = array.shape[0] // factor, array.shape[1] // factor
-    cropped = array[: h * factor, : w * factor]
-    return cropped.reshape(h, factor, w, factor).transpose(0, 2, 1, 3).reshape(h, w, factor * factor)
-
-
-def downscale_labels(labels: np.ndarray, factor: int) -> np.ndarray:
-    """[H, W] ids -> [H // f, W // f]: the most frequent id of each f x f block.
-
-    Ties go to the id met first in row-major order within the block.
-    """
-    if factor == 1:
-        return labels
-    blocks = _blocks(labels, factor)  # [h, w, f*f]
-    counts = (blocks[..., :, None] == blocks[..., None, :]).sum(-1)  # [h, w, f*f]
-    pick = np.argmax(counts, axis=-1)
-    return np.take_along_axis(blocks, pick[..., None], -1)[..., 0]
-
-
-def downscale_depth(depth: np.ndarray, factor: int, max_ratio: float = 1.1) -> np.ndarray:
-    """[H, W] z-depth (0 = invalid) -> [H // f, W // f] depth at each block's centre.
-
-    The block's harmonic mean (exact on planes, where 1 / z is affine in the pixel coordinates);
-    a block with an invalid pixel or a depth edge (max / min > ``max_ratio``) becomes 0 (invalid)
-    rather than a point floating between two surfaces.
-    """
-    if factor == 1:
-        return depth
-    blocks = _blocks(depth, factor).astype(np.float64)
-    valid = (blocks > 0).all(-1)
-    safe = np.where(blocks > 0, blocks, 1.0)
-    smooth = safe.max(-1) <= safe.min(-1) * max_ratio
-    out = factor * factor / (1.0 / safe).sum(-1)
-    out = np.where(valid & smooth, out, 0.0)
-    return np.round(out).astype(depth.dtype) if np.issubdtype(depth.dtype, np.integer) else out.astype(depth.dtype)
-
-
-def rigid_inverse(camera_to_world: np.ndarray, where: str, tol: float = 1e-2) -> np.ndarray:
-    """[4, 4] world-to-camera of a [4, 4] (or [3, 4]) camera-to-world pose.
-
-    The rotation is re-orthonormalised (nearest rotation, by SVD) so that text files written with
-    few decimals still give exact rigid transforms; a matrix further than ``tol`` from a rotation,
-    or a reflection, is refused.
-    """
-    pose = np.asarray(camera_to_world, dtype=np.float64)
-    if pose.shape == (4, 4) and np.abs(pose[3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-6:
-        raise Trace3DError(f"{where}: the pose's last row is {pose[3].tolist()}, not (0, 0, 0, 1).")
-    rotation = np.asarray(camera_to_world, dtype=np.float64)[:3, :3]
-    centre = np.asarray(camera_to_world, dtype=np.float64)[:3, 3]
-    if not (np.isfinite(rotation).all() and np.isfinite(centre).all()):
-        raise Trace3DError(f"{where}: the pose has non-finite values.")
-    u, _, vt = np.linalg.svd(rotation)
-    nearest = u @ vt
-    if np.linalg.det(nearest) < 0 or np.abs(nearest - rotation).max() > tol:
-        raise Trace3DError(
-            f"{where}: the pose's 3x3 block is not a rotation (det {np.linalg.det(rotation):.4f}, "
-            f"distance to the nearest rotation {np.abs(nearest - rotation).max():.2e})."
-        )
-    w2c = np.eye(4)
-    w2c[:3, :3] = nearest.T
-    w2c[:3, 3] = -nearest.T @ centre
-    return w2c
 
 
 def replica_intrinsics(width: int, height: int) -> np.ndarray:
