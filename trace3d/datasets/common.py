@@ -1,10 +1,7 @@
-"""Helpers shared by the importers (:mod:`.replica`, :mod:`.llff`, :mod:`.images`): block downscaling of
-images, label maps and depth maps, the matching intrinsics, validated camera-to-world inversion, image
-listing and the every-n-th-view test split."""
+"""Helpers shared by the importers (:mod:`.replica`, :mod:`.llff`): block downscaling of images, label
+maps and depth maps, the matching intrinsics, and validated camera-to-world inversion."""
 
 from __future__ import annotations
-
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -92,11 +89,15 @@ def rigid_inverse(camera_to_world: np.ndarray, where: str, tol: float = 1e-2) ->
     return w2c
 
 
+# --- image folders (llff, images) ----------------------------------------------------------------
+
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
 
 
-def list_images(folder: Path) -> list[Path]:
-    """The .png/.jpg/.jpeg files of ``folder`` sorted by name; their stems must be unique."""
+def list_images(folder) -> list:
+    """The .png/.jpg/.jpeg files (``Path``) of ``folder`` sorted by name; their stems must be unique."""
+    from pathlib import Path
+
     folder = Path(folder)
     if not folder.is_dir():
         raise Trace3DError(f"{folder}: image folder is missing (set images_factor to a folder that exists).")
