@@ -1,7 +1,8 @@
 # trace3d: Trace3D (ICCV 2025) as a cached, per-scene Snakemake pipeline.
 #   snakemake --cores 2 reproduce                        # everything in config/config.yaml
-#   snakemake --cores 2 results/room1/summary.json       # one scene, all its steps
-#   snakemake --cores 2 --forcerun gaussians results/room1/summary.json
+#   snakemake --cores 2 results/room1/gaussians          # one scene, up to its 2DGS fit
+#   snakemake --cores 2 --forcerun=gaussians results/room1/gaussians   # rerun that step
+#   snakemake --cores 2 --configfile=my.yaml reproduce   # `=`: --configfile/--config/--forcerun take several values
 from snakemake.utils import min_version
 
 min_version("9.0")

@@ -23,7 +23,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(workflow.basedir) / ".numba_cache"))
 
 # Library files every step runs (the CLI, atomic writing, parameter parsing): part of every code version.
-COMMON_CODE = ("cli.py", "io.py", "params.py", "errors.py", "__init__.py")
+COMMON_CODE = ("cli.py", "io.py", "params.py", "errors.py", "threads.py", "__init__.py")
 
 
 wildcard_constraints:
@@ -83,6 +83,11 @@ def mask_args(wildcards):
     source = merged.get("source", "simulated")
     params = shlex.quote(json.dumps(merged.get(source, {}), sort_keys=True))
     return f"--source {source} --params {params}"
+
+
+def mask_source(wildcards):
+    """The scene's mask source (simulated | files | sam): SAM needs more threads, memory and time."""
+    return json.loads(step_params(wildcards.scene, "masks")).get("source", "simulated")
 
 
 def quoted_params(step):

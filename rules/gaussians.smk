@@ -12,7 +12,8 @@ rule gaussians:
         code=code_version("scene.py", "render", "gaussians.py", "training", "losses.py", "pointcloud.py"),
     threads: 2
     resources:
-        mem_mb=8000,
+        mem_mb=4000,
+        runtime=60,
     log:
         f"{RESULTS}/logs/{{scene}}/gaussians.log",
     benchmark:
@@ -20,5 +21,5 @@ rule gaussians:
     conda:
         ENV
     shell:
-        "trace3d gaussians --scene {input.scene} --poses {input.poses} --out {output}"
+        "trace3d --threads {threads} gaussians --scene {input.scene} --poses {input.poses} --out {output}"
         " --params {params.p} > {log} 2>&1"

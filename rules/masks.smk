@@ -9,6 +9,10 @@ rule masks:
     params:
         args=mask_args,
         code=code_version("scene.py", "masks"),
+    threads: lambda wc: 2 if mask_source(wc) == "sam" else 1
+    resources:
+        mem_mb=lambda wc: 8000 if mask_source(wc) == "sam" else 1000,
+        runtime=lambda wc: 120 if mask_source(wc) == "sam" else 10,
     log:
         f"{RESULTS}/logs/{{scene}}/masks.log",
     benchmark:
@@ -16,7 +20,7 @@ rule masks:
     conda:
         ENV
     shell:
-        "trace3d masks --scene {input} --out {output} {params.args} > {log} 2>&1"
+        "trace3d --threads {threads} masks --scene {input} --out {output} {params.args} > {log} 2>&1"
 
 
 rule patches:
@@ -28,6 +32,10 @@ rule patches:
     params:
         p=quoted_params("patches"),
         code=code_version("scene.py", "masks"),
+    threads: 1
+    resources:
+        mem_mb=1000,
+        runtime=10,
     log:
         f"{RESULTS}/logs/{{scene}}/patches.log",
     benchmark:
@@ -35,7 +43,7 @@ rule patches:
     conda:
         ENV
     shell:
-        "trace3d patches --scene {input.scene} --masks {input.masks} --out {output}"
+        "trace3d --threads {threads} patches --scene {input.scene} --masks {input.masks} --out {output}"
         " --params {params.p} > {log} 2>&1"
 
 

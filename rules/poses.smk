@@ -10,6 +10,9 @@ rule poses:
         p=quoted_params("poses"),
         code=code_version("scene.py", "sfm.py", "pointcloud.py"),
     threads: 2
+    resources:
+        mem_mb=2000,
+        runtime=30,
     log:
         f"{RESULTS}/logs/{{scene}}/poses.log",
     benchmark:
@@ -17,4 +20,4 @@ rule poses:
     conda:
         ENV
     shell:
-        "trace3d poses --scene {input} --out {output} --params {params.p} > {log} 2>&1"
+        "trace3d --threads {threads} poses --scene {input} --out {output} --params {params.p} > {log} 2>&1"

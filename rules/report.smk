@@ -10,12 +10,16 @@ rule scenes_table:
             category="Scenes",
             caption="../workflow/report/scenes.rst",
         ),
+    threads: 1
+    resources:
+        mem_mb=1000,
+        runtime=5,
     log:
         f"{RESULTS}/logs/scenes_table.log",
     conda:
         ENV
     shell:
-        "trace3d summary {input} --out {output} > {log} 2>&1"
+        "trace3d --threads {threads} summary {input} --out {output} > {log} 2>&1"
 
 
 rule reconstruction_table:
@@ -33,12 +37,16 @@ rule reconstruction_table:
             category="Reconstruction",
             caption="../workflow/report/reconstruction.rst",
         ),
+    threads: 1
+    resources:
+        mem_mb=1000,
+        runtime=5,
     log:
         f"{RESULTS}/logs/reconstruction_table.log",
     conda:
         ENV
     shell:
-        "trace3d reconstruction-table --poses {input.poses} --gaussians {input.gaussians}"
+        "trace3d --threads {threads} reconstruction-table --poses {input.poses} --gaussians {input.gaussians}"
         " --out {output.table} --plot {output.plot} > {log} 2>&1"
 
 
@@ -57,10 +65,14 @@ rule tracing_table:
             category="Tracing",
             caption="../workflow/report/tracing.rst",
         ),
+    threads: 1
+    resources:
+        mem_mb=1000,
+        runtime=5,
     log:
         f"{RESULTS}/logs/tracing_table.log",
     conda:
         ENV
     shell:
-        "trace3d tracing-table --merge {input.merge} --refine {input.refine}"
+        "trace3d --threads {threads} tracing-table --merge {input.merge} --refine {input.refine}"
         " --out {output.table} --plot {output.plot} > {log} 2>&1"

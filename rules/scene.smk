@@ -7,6 +7,10 @@ rule scene:
     params:
         args=scene_kind_args,
         code=code_version("scene.py", "datasets", "preview.py"),
+    threads: 2
+    resources:
+        mem_mb=1000,
+        runtime=15,
     log:
         f"{RESULTS}/logs/{{scene}}/scene.log",
     benchmark:
@@ -14,4 +18,4 @@ rule scene:
     conda:
         ENV
     shell:
-        "trace3d scene {params.args} --out {output} > {log} 2>&1"
+        "trace3d --threads {threads} scene {params.args} --out {output} > {log} 2>&1"

@@ -15,7 +15,8 @@ rule trace:
         code=code_version("scene.py", "render", "gaussians.py", "tracing", "training"),
     threads: 2
     resources:
-        mem_mb=4000,
+        mem_mb=2000,
+        runtime=20,
     log:
         f"{RESULTS}/logs/{{scene}}/trace-{{preset}}.log",
     benchmark:
@@ -23,7 +24,7 @@ rule trace:
     conda:
         ENV
     shell:
-        "trace3d trace --scene {input.scene} --poses {input.poses} --gaussians {input.gaussians}"
+        "trace3d --threads {threads} trace --scene {input.scene} --poses {input.poses} --gaussians {input.gaussians}"
         " --labels {input.patches} --out {output} --params {params.p} > {log} 2>&1"
 
 
@@ -39,7 +40,8 @@ rule merge:
         code=code_version("scene.py", "tracing", "masks"),
     threads: 2
     resources:
-        mem_mb=4000,
+        mem_mb=2000,
+        runtime=20,
     log:
         f"{RESULTS}/logs/{{scene}}/merge-{{preset}}.log",
     benchmark:
@@ -47,7 +49,7 @@ rule merge:
     conda:
         ENV
     shell:
-        "trace3d merge --scene {input.scene} --git {input.git} --patches {input.patches}"
+        "trace3d --threads {threads} merge --scene {input.scene} --git {input.git} --patches {input.patches}"
         " --out {output} --params {params.p} > {log} 2>&1"
 
 
@@ -65,7 +67,8 @@ rule refine:
         code=code_version("scene.py", "render", "gaussians.py", "tracing", "training", "losses.py"),
     threads: 2
     resources:
-        mem_mb=8000,
+        mem_mb=4000,
+        runtime=60,
     log:
         f"{RESULTS}/logs/{{scene}}/refine-{{preset}}-{{masks}}.log",
     benchmark:
@@ -73,5 +76,5 @@ rule refine:
     conda:
         ENV
     shell:
-        "trace3d refine --scene {input.scene} --poses {input.poses} --gaussians {input.gaussians}"
+        "trace3d --threads {threads} refine --scene {input.scene} --poses {input.poses} --gaussians {input.gaussians}"
         " --labels {params.labels} --out {output} --params {params.p} > {log} 2>&1"

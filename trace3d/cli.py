@@ -61,6 +61,10 @@ def _cmd_scene(args: argparse.Namespace) -> None:
             from .datasets import llff
 
             llff.import_llff(source, tmp, llff.params_from(params))
+        elif args.kind == "images":
+            from .datasets import images
+
+            images.import_images(source, tmp, images.params_from(params))
         elif args.kind == "canonical":
             from .scene import Scene
 
@@ -261,14 +265,16 @@ def build_parser() -> argparse.ArgumentParser:
         description="Trace3D pipeline steps. Each step reads files, writes one output folder atomically.",
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("--threads", type=int, metavar="N",
+                        help="CPU threads for torch, numba, OpenMP and COLMAP (default: all cores)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="STEP")
 
     params_help = "parameter overrides: inline JSON/YAML mapping, or @file.yaml"
 
     p = sub.add_parser("scene", help="build a canonical scene folder (synthetic room or an importer)")
-    p.add_argument("kind", choices=["synthetic", "replica", "nvos", "llff", "canonical"])
+    p.add_argument("kind", choices=["synthetic", "replica", "nvos", "llff", "canonical", "images"])
     p.add_argument("--out", required=True, help="output scene folder")
-    p.add_argument("--source", help="data set folder (importers only)")
+    p.add_argument("--source", help="data set folder (importers only; images: a folder of photos)")
     p.add_argument("--params", help=params_help)
     p.set_defaults(func=_cmd_scene)
 
@@ -384,8 +390,11 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    from .threads import limit_threads
+
     try:
-        args.func(args)
+        with limit_threads(args.threads):
+            args.func(args)
     except Trace3DError as exc:
         print(f"trace3d {args.command}: error: {exc}", file=sys.stderr)
         return 2

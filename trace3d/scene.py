@@ -490,3 +490,13 @@ def write_frame(
         mm = np.clip(np.round(np.asarray(depth, dtype=np.float64) * DEPTH_SCALE), 0, 65535)
         mm[~np.isfinite(np.asarray(depth, dtype=np.float64))] = 0
         write_u16(root / "depth" / f"{name}.png", mm.astype(np.uint16))
+
+
+def require_known_poses(scene: Scene, step: str) -> None:
+    """Refuse to use the scene's own cameras when its poses are placeholders (meta.json ``"poses":
+    "unknown"``, as ``trace3d scene images`` writes): ``step`` must take the ``poses`` step's folder."""
+    if str(scene.meta.get("poses", "")).lower() in ("unknown", "none", "identity"):
+        raise SceneFormatError(
+            f"{scene.root / 'meta.json'}: the scene's poses are unknown (placeholders), so `{step}` needs the "
+            "poses step's folder (--poses) with the cameras COLMAP estimated."
+        )

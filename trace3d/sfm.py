@@ -163,7 +163,10 @@ def params_from(values: dict | None) -> PosesParams:
 
 def run_poses(scene: Scene, out_dir: Path, params: dict) -> None:
     """The ``poses`` step: write sparse/0, cameras.json, points3D.ply and sfm.json into ``out_dir``."""
+    from .threads import resolve_threads
+
     p = params_from(params)
+    p = dataclasses.replace(p, num_threads=resolve_threads(p.num_threads))  # -1 = all of `trace3d --threads`
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if p.mode == "dataset":
@@ -187,6 +190,17 @@ def scene_has_reference_poses(scene: Scene) -> bool:
     return len(centres) >= 3 and float(np.ptp(centres, axis=0).max()) > 1e-9
 
 
+def scene_intrinsics_are_guessed(scene: Scene) -> bool:
+    """Whether the scene's intrinsics are an importer's guess (``trace3d scene images``: meta.json
+    ``intrinsics`` is ``guess``, ``exif_35mm``, ``exif_focal_plane`` or ``mixed``).
+
+    COLMAP then starts from them but refines the focal length even when ``known_intrinsics`` (the
+    principal point stays at the image centre unless ``refine_intrinsics``); only a plain ``guess``
+    is not installed as a focal-length prior.
+    """
+    return str(scene.meta.get("intrinsics", "")) in ("guess", "exif_35mm", "exif_focal_plane", "mixed")
+
+
 def camera_diameter(centres: np.ndarray) -> float:
     """Largest pairwise distance between camera centres [L, 3] (the scene extent used for errors)."""
     diff = centres[:, None, :] - centres[None, :, :]
@@ -202,7 +216,7 @@ def _run_dataset(scene: Scene, out_dir: Path, p: PosesParams) -> dict:
     if not scene_has_reference_poses(scene):
         raise ConfigError(
             f"{scene.root / 'cameras.json'}: poses mode 'dataset' needs the scene's own poses, but they are "
-            "unknown (identity poses or meta.json 'poses': 'unknown'); use mode 'colmap'."
+            "unknown (identity poses or meta.json 'poses': 'unknown', as for `trace3d scene images`); use mode 'colmap'."
         )
     cameras = [dataclasses.replace(c) for c in scene.cameras]
     for cam in cameras:
@@ -417,7 +431,8 @@ def _extract_and_match(scene: Scene, p: PosesParams, database: Path, single: boo
         camera_model="PINHOLE", reader_options=reader, extraction_options=extraction,
         device=pycolmap.Device.cpu,
     )  # fmt: skip
-    num_keypoints = _prepare_database(database, scene, known_intrinsics)
+    num_keypoints = _prepare_database(database, scene, known_intrinsics,
+                                      prior=scene.meta.get("intrinsics") not in ("guess", "mixed"))
     timings["extract_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -454,6 +469,7 @@ def _run_colmap(scene: Scene, out_dir: Path, p: PosesParams) -> dict:
     pycolmap.set_random_seed(p.seed)
     names = [c.name for c in scene.cameras]
     single = _decide_single_camera(scene, p.single_camera, p.known_intrinsics)
+    guessed = p.known_intrinsics and scene_intrinsics_are_guessed(scene)
     if p.known_intrinsics:
         for cam in scene.cameras:
             _check_pinhole(cam, str(scene.root / "cameras.json"))
@@ -461,14 +477,15 @@ def _run_colmap(scene: Scene, out_dir: Path, p: PosesParams) -> dict:
     log.info(
         "poses (colmap): %d frames, %s matching, %s camera, intrinsics %s",
         len(names), p.matcher, "one shared" if single else "one per image",
-        ("known, refined" if p.refine_intrinsics else "known, fixed") if p.known_intrinsics else "estimated",
+        ("known, refined" if p.refine_intrinsics else "guessed, focal refined" if guessed else "known, fixed")
+        if p.known_intrinsics else "estimated",
     )  # fmt: skip
 
     with tempfile.TemporaryDirectory(prefix="trace3d-sfm-") as work:
         database = Path(work) / "database.db"
         num_keypoints, num_verified_pairs = _extract_and_match(scene, p, database, single, p.known_intrinsics, timings)
         t0 = time.perf_counter()
-        mapping = _mapping_options(p, len(names))
+        mapping = _mapping_options(p, len(names), refine_focal=guessed)
         log.info("poses (colmap): incremental mapping (%d verified image pairs) ...", num_verified_pairs)
         models = pycolmap.incremental_mapping(
             str(database), str(scene.root / "images"), str(Path(work) / "sparse"), mapping
@@ -544,7 +561,13 @@ def _run_colmap(scene: Scene, out_dir: Path, p: PosesParams) -> dict:
         w2c[:3, :4] = image.cam_from_world().matrix()
         cameras.append(Camera(cam.name, cam.split, cam.width, cam.height, K, w2c))
     report["filled_from_scene"] = filled
-    if p.known_intrinsics is False or p.refine_intrinsics:
+    if guessed:
+        report["intrinsics"] = {
+            "initial": scene.meta.get("intrinsics"), "refined": "focal length",
+            "focal_initial_px_mean": float(np.mean([scene.camera(c.name).K[0, 0] for c in cameras])),
+            "focal_estimated_px_mean": float(np.mean([c.K[0, 0] for c in cameras])),
+        }
+    elif p.known_intrinsics is False or p.refine_intrinsics:
         report["intrinsics"] = _intrinsics_report([c for c in cameras if c.name in registered], scene)
 
     model_dir = out_dir / "sparse" / "0"
@@ -570,8 +593,9 @@ def _name_list(names: list[str], limit: int = 30) -> str:
     return ", ".join(names[:limit]) + f" and {len(names) - limit} more"
 
 
-def _prepare_database(database: Path, scene: Scene, known_intrinsics: bool) -> int:
-    """Install the scene's intrinsics as camera priors (when known); return the total keypoint count."""
+def _prepare_database(database: Path, scene: Scene, known_intrinsics: bool, prior: bool = True) -> int:
+    """Install the scene's intrinsics as the cameras' (when known; flagged as a focal-length prior
+    when ``prior``); return the total keypoint count."""
     import pycolmap
 
     with pycolmap.Database.open(str(database)) as db:
@@ -589,7 +613,7 @@ def _prepare_database(database: Path, scene: Scene, known_intrinsics: bool) -> i
                 cam = by_name[img.name]
                 colmap_cam = db.read_camera(img.camera_id)
                 colmap_cam.params = [cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]]
-                colmap_cam.has_prior_focal_length = True
+                colmap_cam.has_prior_focal_length = prior
                 db.update_camera(colmap_cam)
     return total
 
@@ -603,7 +627,8 @@ def _count_verified_pairs(database: Path, min_inliers: int) -> int:
     return sum(1 for g in geometries if len(g.inlier_matches) >= min_inliers)
 
 
-def _mapping_options(p: PosesParams, num_images: int):
+def _mapping_options(p: PosesParams, num_images: int, refine_focal: bool = False):
+    """COLMAP's incremental mapping options; ``refine_focal`` also refines known (guessed) focal lengths."""
     import pycolmap
 
     opts = pycolmap.IncrementalPipelineOptions()
@@ -613,7 +638,7 @@ def _mapping_options(p: PosesParams, num_images: int):
     opts.min_model_size = min(opts.min_model_size, max(2, num_images // 2))
     opts.extract_colors = True
     opts.multiple_models = True
-    refine_focal = p.refine_intrinsics or not p.known_intrinsics
+    refine_focal = refine_focal or p.refine_intrinsics or not p.known_intrinsics
     opts.ba_refine_focal_length = refine_focal
     opts.ba_refine_principal_point = p.refine_intrinsics and p.known_intrinsics
     opts.ba_refine_extra_params = False

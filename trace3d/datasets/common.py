@@ -87,3 +87,30 @@ def rigid_inverse(camera_to_world: np.ndarray, where: str, tol: float = 1e-2) ->
     w2c[:3, :3] = nearest.T
     w2c[:3, 3] = -nearest.T @ centre
     return w2c
+
+
+# --- image folders (llff, images) ----------------------------------------------------------------
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
+
+
+def list_images(folder) -> list:
+    """The .png/.jpg/.jpeg files (``Path``) of ``folder`` sorted by name; their stems must be unique."""
+    from pathlib import Path
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise Trace3DError(f"{folder}: image folder is missing (set images_factor to a folder that exists).")
+    files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS)
+    if not files:
+        raise Trace3DError(f"{folder}: contains no .png/.jpg images.")
+    stems = [p.stem for p in files]
+    if len(set(stems)) != len(stems):
+        dup = sorted({s for s in stems if stems.count(s) > 1})
+        raise Trace3DError(f"{folder}: image names are not unique without their extension ({', '.join(dup)}).")
+    return files
+
+
+def every_nth_split(names: list[str], test_every: int) -> dict[str, str]:
+    """Split by position: 0, n, 2n ... are ``test`` (n = ``test_every``; 0 = all ``train``)."""
+    return {name: "test" if test_every and k % test_every == 0 else "train" for k, name in enumerate(names)}

@@ -41,7 +41,7 @@ from ..errors import Trace3DError
 from ..io import atomic_file, write_json
 from ..params import from_mapping, to_dict
 from ..scene import Camera, read_rgb, write_cameras, write_rgb
-from .common import downscale_rgb, rigid_inverse, scale_intrinsics
+from .common import IMAGE_EXTENSIONS, downscale_rgb, every_nth_split, list_images, rigid_inverse, scale_intrinsics
 
 log = logging.getLogger(__name__)
 
@@ -56,9 +56,6 @@ NVOS_OBJECTS = {
     "orchids": ("orchids", "IMG_4480", "IMG_4479"),
     "trex": ("trex", "DJI_20200223_163619_411", "DJI_20200223_163607_906"),
 }
-
-IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
-
 
 @dataclasses.dataclass
 class LLFFParams:
@@ -141,15 +138,6 @@ def read_poses_bounds(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return mats[:, :, :4], mats[:, :, 4], data[:, 15:17]
 
 
-def list_images(folder: Path) -> list[Path]:
-    if not folder.is_dir():
-        raise Trace3DError(f"{folder}: image folder is missing (set images_factor to a folder that exists).")
-    files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS)
-    if not files:
-        raise Trace3DError(f"{folder}: contains no .png/.jpg images.")
-    return files
-
-
 @dataclasses.dataclass
 class _LLFFFrame:
     name: str
@@ -169,8 +157,6 @@ def read_llff_scene(scene_dir: Path, params: LLFFParams) -> tuple[list[_LLFFFram
             f"{folder}: holds {len(files)} images but {scene_dir / 'poses_bounds.npy'} has {len(poses)} poses."
         )
     names = [p.stem for p in files]
-    if len(set(names)) != len(names):
-        raise Trace3DError(f"{folder}: image names are not unique without their extension.")
     frames = []
     for k, path in enumerate(files):
         c2w = llff_to_opencv_c2w(poses[k])
@@ -242,9 +228,7 @@ def import_llff(source: Path, out_dir: Path, params: LLFFParams) -> None:
     if not (source / "poses_bounds.npy").is_file() and params.scene and (source / params.scene).is_dir():
         scene_dir = source / params.scene
     frames, folder = read_llff_scene(scene_dir, params)
-    splits = {
-        f.name: "test" if params.test_every and k % params.test_every == 0 else "train" for k, f in enumerate(frames)
-    }
+    splits = every_nth_split([f.name for f in frames], params.test_every)
     cameras, scale = _write_llff_frames(frames, splits, out_dir, params, f"llff {scene_dir.name}")
     write_json(out_dir / "meta.json", {
         "importer": "llff",

@@ -57,7 +57,7 @@ def write_tracing_table(merge_dirs: list[Path], refine_dirs: list[Path] | None, 
         tmp.write_text(text)
     with atomic_file(Path(out).with_suffix(".csv")) as tmp:
         table.to_csv(tmp, index=False)
-    if plot is not None and "ARI before" in table:
+    if plot is not None:  # without ground truth (e.g. a user's photos): patches and instances per view
         _plot(table, Path(plot))
     return table
 
@@ -68,12 +68,16 @@ def _plot(table: pd.DataFrame, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    names = ("ARI", "covered", "straddling")
-    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.4))
+    if "ARI before" in table:
+        names, before, after = ("ARI", "covered", "straddling"), "{} before", "{} after"
+    else:
+        names, before, after = ("segments per view",), "patches/view", "instances/view"
+    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.4), squeeze=False)
+    axes = axes[0]
     x = np.arange(len(table))
     for ax, name in zip(axes, names):
-        ax.bar(x - 0.2, table[f"{name} before"], 0.4, label="raw patches")
-        ax.bar(x + 0.2, table[f"{name} after"], 0.4, label="consistent maps")
+        ax.bar(x - 0.2, table[before.format(name)], 0.4, label="raw patches")
+        ax.bar(x + 0.2, table[after.format(name)], 0.4, label="consistent maps")
         ax.set_xticks(x, table["scene"], rotation=30)
         ax.set_title(name)
         ax.grid(alpha=0.3, axis="y")

@@ -159,6 +159,10 @@ def load_fitted(scene, poses_dir: Path | None, gaussians_dir: Path) -> tuple[Gau
     else the scene's)."""
     from ..training import read_pose_cameras
 
+    from ..scene import require_known_poses
+
+    if poses_dir is None:
+        require_known_poses(scene, "trace3d trace/refine")
     model = GaussianModel.read_ply(Path(gaussians_dir) / "point_cloud.ply")
     cameras = read_pose_cameras(Path(poses_dir), scene) if poses_dir is not None else list(scene.cameras)
     return model, cameras

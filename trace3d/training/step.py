@@ -20,7 +20,7 @@ from ..errors import ConfigError, SceneFormatError, Trace3DError
 from ..gaussians import GaussianModel, init_from_depth, init_from_points, init_random
 from ..io import write_json
 from ..params import from_mapping, to_dict
-from ..scene import Camera, Scene, read_cameras
+from ..scene import Camera, Scene, read_cameras, require_known_poses
 from .loop import TrainingDiverged, evaluate_views, fit, points_extent, scene_extent, torch_threads
 from .params import TrainParams
 
@@ -193,6 +193,8 @@ def run_gaussians(scene: Scene, poses_dir: Path | None, out_dir: Path, params: d
     p = from_mapping(TrainParams, params, "gaussians params")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    if poses_dir is None:
+        require_known_poses(scene, "trace3d gaussians")
     cameras = read_pose_cameras(Path(poses_dir), scene) if poses_dir is not None else list(scene.cameras)
     train_cameras = [c for c in cameras if c.split == "train"]
     test_cameras = [c for c in cameras if c.split == "test"]
