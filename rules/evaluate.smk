@@ -17,7 +17,8 @@ rule evaluate:
         code=code_version("scene.py", "render", "gaussians.py", "evaluation", "lifting", "tracing/git.py"),
     threads: 2
     resources:
-        mem_mb=4000,
+        mem_mb=3000,
+        runtime=30,
     log:
         f"{RESULTS}/logs/{{scene}}/{{variant}}/evaluate.log",
     benchmark:
@@ -25,7 +26,7 @@ rule evaluate:
     conda:
         ENV
     shell:
-        "trace3d evaluate --scene {input.scene} --poses {input.poses} --gaussians {input.gaussians}"
+        "trace3d --threads {threads} evaluate --scene {input.scene} --poses {input.poses} --gaussians {input.gaussians}"
         " --lift {input.lift} --out {output} --params {params.p} --label {params.label} > {log} 2>&1"
 
 
@@ -49,16 +50,21 @@ rule tables:
         results=lambda w, output: os.path.dirname(os.path.dirname(output.table2)),
         out=lambda w, output: os.path.dirname(output.table2),
         code=code_version("report/tables.py"),
+    threads: 1
+    resources:
+        mem_mb=1000,
+        runtime=5,
     log:
         f"{RESULTS}/logs/tables.log",
     conda:
         ENV
     shell:
-        "trace3d tables --results {params.results} --out {params.out} --evals {input} > {log} 2>&1"
+        "trace3d --threads {threads} tables --results {params.results} --out {params.out} --evals {input} > {log} 2>&1"
 
 
 # The evaluation figure of every (scene, variant), beside the tables in the report.
 rule evaluation_pictures:
+    localrule: True
     input:
         f"{RESULTS}/{{scene}}/{{variant}}/eval",
     output:

@@ -57,6 +57,10 @@ rule overlay:
         directory(f"{RESULTS}/{{scene}}/overlay"),
     params:
         code=code_version("scene.py", "masks"),
+    threads: 1
+    resources:
+        mem_mb=1000,
+        runtime=10,
     log:
         f"{RESULTS}/logs/{{scene}}/overlay.log",
     benchmark:
@@ -64,4 +68,4 @@ rule overlay:
     conda:
         ENV
     shell:
-        "trace3d overlay --scene {input.scene} --masks {input.masks} --out {output} > {log} 2>&1"
+        "trace3d --threads {threads} overlay --scene {input.scene} --masks {input.masks} --out {output} > {log} 2>&1"
