@@ -78,6 +78,8 @@ def test_end_to_end_tiny(tmp_path):
             "masks": {"source": "simulated", "simulated": {"inconsistency": 0.5}},
             "gaussians": TINY_TRAINING,
             "refine": {"iterations": 20, "detect_at": [1, 10], "schedule_scale": 1.0, "highlight_views": 1},
+            "lift": {"iterations": 30, "pixels": 256, "pool_pixels": 512, "pca_views": 1},
+            "evaluate": {"min_pixels": 20, "turntable_views": 3, "turntable_size": 32},
         },
         # both ablation switches: the shared steps must run once
         "variants": {"full": {}, "no_refine": {"density_control": False}, "raw": {"consistent_masks": False}},
@@ -100,6 +102,20 @@ def test_end_to_end_tiny(tmp_path):
             assert (tmp_path / "results" / scene / step).is_dir(), step
         assert not (tmp_path / "results" / scene / "refine-official-merged").exists()
         assert len(list((tmp_path / "results" / scene / "merge-paper" / "instances").glob("*.png"))) >= 4
+        for name in ("full", "no_refine", "raw"):
+            assert (tmp_path / "results" / scene / name / "lift" / "features.npy").is_file(), name
+            assert (tmp_path / "results" / scene / name / "eval" / "metrics.json").is_file(), name
+    tables = tmp_path / "results" / "tables"
+    for name in ("table2", "table3", "table5"):
+        text = (tables / f"{name}.md").read_text()
+        assert "full" in text, (name, text)
+        assert (tables / f"{name}.csv").is_file() and (tables / f"{name}.tex").is_file()
+    assert "no_refine" in (tables / "table2.md").read_text() and "raw" in (tables / "table3.md").read_text()
+    report = run_snakemake(tmp_path, "--cores", "1", "reproduce", "--report", str(tmp_path / "report.html"),
+                           config=config)
+    assert report.returncode == 0, report.stderr[-4000:]
+    html = (tmp_path / "report.html").read_text(errors="replace")
+    assert "table2" in html and "Tables" in html
     tracing = (tmp_path / "results" / "tracing.md").read_text()
     assert "| a " in tracing and "ARI before" in tracing
     reconstruction = (tmp_path / "results" / "reconstruction.md").read_text()
