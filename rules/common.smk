@@ -90,8 +90,9 @@ def quoted_params(step):
 #   trace   results/<scene>/trace-<preset>/            (GIT of the raw patches: git.npz)
 #   merge   results/<scene>/merge-<preset>/instances/  (consistent instance maps)
 #   refine  results/<scene>/refine-<preset>-<masks>/   (masks: merged | patches)
-#   later   results/<scene>/<variant>/...              (lifting, evaluation: per variant)
-VARIANT_DEFAULTS = {"preset": "paper", "consistent_masks": True, "density_control": True}
+#   lift    results/<scene>/<variant>/lift/             (lifting: contrastive | self_prompt)
+#   later   results/<scene>/<variant>/...              (evaluation: per variant)
+VARIANT_DEFAULTS = {"preset": "paper", "consistent_masks": True, "density_control": True, "lifting": "contrastive"}
 VARIANTS = {name: {**VARIANT_DEFAULTS, **(v or {})} for name, v in config.get("variants", {"full": {}}).items()}
 
 

@@ -176,7 +176,8 @@ def test_query_points_on_a_toy_feature_map():
 def test_contrastive_lifting_separates_two_objects():
     model, truth, cameras = two_objects()
     maps = label_maps_of(cameras)
-    params = ContrastiveParams(preset="official", pixels=256, pool_pixels=1024, iterations=150, lr=0.02)
+    params = ContrastiveParams(kernel="gaussian", temperature=1.0, pixels=256, pool_pixels=1024, iterations=150,
+                               lr=0.02)
     trainer = ContrastiveTrainer(model, cameras, maps, params)
     history = trainer.train(params.iterations)
     assert np.mean([v for _, v in history[-3:]]) < 0.5 * history[0][1]

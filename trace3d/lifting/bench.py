@@ -25,10 +25,11 @@ log = logging.getLogger(__name__)
 
 
 def _labels_dir(room: Path) -> Path:
-    for cand in ("merge-paper/instances", "merge-official/instances", "patches"):
+    # the consistent instance maps; the ground-truth instance maps stand in while a room has no merge yet
+    for cand in ("merge-paper/instances", "merge-official/instances", "scene/instances"):
         if (room / cand).is_dir():
             return room / cand
-    raise Trace3DError(f"{room}: no instance maps (merge-paper/instances, merge-official/instances or patches); "
+    raise Trace3DError(f"{room}: no instance maps (merge-paper/instances, merge-official/instances or scene/instances); "
                        f"run the merge step for this room first.")
 
 
