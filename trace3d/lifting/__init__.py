@@ -17,6 +17,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
+
+# sleeping OpenMP waits (see trace3d/render/__init__.py): set before torch loads its OpenMP runtime
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 from pathlib import Path
 from typing import Callable, Protocol, Sequence
 
