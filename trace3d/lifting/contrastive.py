@@ -226,7 +226,8 @@ class ContrastiveTrainer:
         self.rng = np.random.default_rng(params.seed)
         gen = torch.Generator().manual_seed(params.seed)
         self.features = (torch.randn(len(model), params.dim, generator=gen) * params.init_std).requires_grad_(True)
-        self.optimizer = torch.optim.Adam([self.features], lr=params.lr)
+        # fused: one pass over the [N, D] state (the for-each Adam took half of a sparse iteration on a room)
+        self.optimizer = torch.optim.Adam([self.features], lr=params.lr, fused=True)
         start = time.perf_counter()
         self.pools = PixelPools(self.model, cameras, label_maps, params.pool_pixels, self.rng,
                                 with_weights=params.path == "sparse", near=params.near, progress=progress)
