@@ -4,6 +4,9 @@ self-prompting, and the lift step end to end on a tiny scene."""
 from __future__ import annotations
 
 import json
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads OpenMP (spinning waits stall a busy box)
 
 import numpy as np
 import pytest
