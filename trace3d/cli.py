@@ -188,6 +188,10 @@ def _cmd_bench(args: argparse.Namespace) -> None:
         from .params import load_params_arg
 
         result = run_bench(Path(args.room), quick=args.quick, params=load_params_arg(args.params))
+    elif args.name == "lift-forms":
+        from .lifting.bench import compare_forms
+
+        result = compare_forms(Path(args.room), iterations=300 if args.quick else 1500)
     else:  # argparse restricts choices; kept for clarity
         raise Trace3DError(f"unknown benchmark {args.name!r}.")
     text = json.dumps(result, indent=2)
@@ -325,7 +329,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_tracing_table)
 
     p = sub.add_parser("bench", help="benchmarks; print one JSON object")
-    p.add_argument("name", choices=["render", "synthetic", "trace", "lift"])
+    p.add_argument("name", choices=["render", "synthetic", "trace", "lift", "lift-forms"])
     p.add_argument("--room", default="results/room0",
                    help="trace, lift: a fitted room's results folder (scene/, poses/, gaussians/, patches/ or "
                         "merge-paper/instances)")

@@ -113,3 +113,61 @@ def run_bench(room: Path, quick: bool = False, params: dict | None = None) -> di
         result["step_info"] = info
         result["step_final_loss"] = float(np.mean([v for _, v in history[-max(1, len(history) // 20):]]))
     return result
+
+
+FORMS = {
+    "official": {"preset": "official"},
+    "printed_lr1e-5": {"kernel": "printed", "temperature": 0.01, "lr": 1e-5},
+    "printed_lr5e-3": {"kernel": "printed", "temperature": 0.01, "lr": 0.005},
+    "gaussian_t1_lr5e-3": {"kernel": "gaussian", "temperature": 1.0, "lr": 0.005},
+}
+
+
+def compare_forms(room: Path, iterations: int = 1500, pixels: int = 1024, max_objects: int = 8) -> dict:
+    """``trace3d bench lift-forms``: train each loss form (:data:`FORMS`) on ``room`` with the ground-truth
+    instance maps as labels, then query each of up to ``max_objects`` objects from the training view
+    where it is largest (its ground-truth mask) and score the predicted masks on the test views where
+    the object has at least 200 pixels (mean IoU)."""
+    from ..scene import Scene
+    from ..tracing.git import load_fitted, load_label_maps
+    from . import ObjectQuery
+    from .contrastive import ContrastiveParams, lift_features
+    from .query import FeatureLifted, iou
+
+    room = Path(room)
+    scene = Scene.read(room / "scene")
+    if not scene.has_instances:
+        raise Trace3DError(f"{room / 'scene'}: no ground-truth instance maps to score the forms against.")
+    model, cameras = load_fitted(scene, room / "poses", room / "gaussians")
+    train = [c for c in cameras if c.split == "train"]
+    test = [c for c in cameras if c.split == "test"]
+    names = [c.name for c in train]
+    maps = load_label_maps(room / "scene" / "instances", names, "instance map")
+    best: dict[int, tuple[int, str]] = {}
+    for cam, m in zip(train, maps):
+        ids, counts = np.unique(m[m > 0], return_counts=True)
+        for i, k in zip(ids.tolist(), counts.tolist()):
+            if k >= 400 and k > best.get(i, (0, ""))[0]:
+                best[i] = (k, cam.name)
+    objects = sorted(best)[:: max(1, len(best) // max_objects)][:max_objects]
+    truths = {c.name: scene.instances(c.name) for c in test}
+    out = {"room": str(room), "iterations": iterations, "pixels": pixels, "objects": objects, "forms": {}}
+    for name, kw in FORMS.items():
+        p = ContrastiveParams(**{"iterations": iterations, "pixels": pixels, **kw})
+        start = time.perf_counter()
+        features, history, info = lift_features(model, train, maps, p)
+        seconds = time.perf_counter() - start
+        lifted = FeatureLifted(model, features, train)
+        scores = []
+        for o in objects:
+            ref = best[o][1]
+            query = ObjectQuery(ref, maps[names.index(ref)] == o, o)
+            for cam, mask in zip(test, lifted.object_masks(query, test)):
+                truth = truths[cam.name] == o
+                if truth.sum() >= 200:
+                    scores.append(iou(mask, truth))
+        out["forms"][name] = {"params": kw, "seconds": seconds, "loss_first": history[0][1],
+                              "loss_last": float(np.mean([v for _, v in history[-10:]])),
+                              "test_miou": float(np.mean(scores)) if scores else None, "pairs": len(scores), **info}
+        log.info("%s: test mIoU %s in %.1f s", name, out["forms"][name]["test_miou"], seconds)
+    return out
