@@ -2,7 +2,8 @@
 
 From point prompts on the reference view (``points`` pixels sampled inside the query mask: the one
 deepest inside it and random others), a promptable mask source (:mod:`trace3d.masks.prompts`)
-gives the reference view's mask. Then, view by view along the training views ordered by pose
+gives the reference view's mask (the granularity closest to the query mask, as a user picks one of
+SAM's answers). Then, view by view along the training views ordered by pose
 proximity to the reference:
 
 1. the masks so far are traced with GIT: per Gaussian, its blending weight summed over all visited
@@ -11,7 +12,8 @@ proximity to the reference:
 2. those Gaussians are rendered into the next view as an indicator (every Gaussian of the scene
    blends 1 if it is the object's, 0 otherwise, so occluders count): pixels above ``mask_threshold``
    are where the object is seen, and ``points`` prompts are sampled there as on the reference;
-3. the mask source answers those prompts with the view's mask, which is traced in turn.
+3. the mask source answers those prompts with the view's mask (the granularity closest to the
+   rendered region), which is traced in turn.
 
 A view where the object's Gaussians cover fewer than ``min_prompt_pixels`` pixels is skipped.
 At any camera the object's mask is the same indicator render, thresholded at ``mask_threshold``.
@@ -137,7 +139,7 @@ def self_prompt(model: GaussianModel, cameras: Sequence[Camera], reference: Came
     ordered = order_by_proximity(reference, list(cameras))
     if params.max_views is not None:
         ordered = ordered[: params.max_views]
-    first = segmenter.segment(reference.name, sample_prompts(mask, params.points, rng), rng)
+    first = segmenter.segment(reference.name, sample_prompts(mask, params.points, rng), rng, like=mask)
     add(reference, first)
     visited, skipped = [reference.name], []
     bar = tqdm(ordered[1:], desc="self-prompting", disable=not progress, leave=False,
@@ -150,7 +152,7 @@ def self_prompt(model: GaussianModel, cameras: Sequence[Camera], reference: Came
         if region.sum() < params.min_prompt_pixels:
             skipped.append(cam.name)
             continue
-        view_mask = segmenter.segment(cam.name, sample_prompts(region, params.points, rng), rng)
+        view_mask = segmenter.segment(cam.name, sample_prompts(region, params.points, rng), rng, like=region)
         add(cam, view_mask)
         visited.append(cam.name)
     return SelfPromptResult(members(), visited, skipped)

@@ -24,8 +24,13 @@ from ..scene import Scene
 
 
 class PromptSegmenter(Protocol):
-    def segment(self, frame: str, points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """[H, W] bool mask of the object under the positive point prompts ``points`` [K, 2] (x, y)."""
+    def segment(self, frame: str, points: np.ndarray, rng: np.random.Generator,
+                like: np.ndarray | None = None) -> np.ndarray:
+        """[H, W] bool mask of the object under the positive point prompts ``points`` [K, 2] (x, y).
+
+        ``like`` ([H, W] bool, optional): a mask the answer should resemble (the user's mask on the
+        reference view): among the source's candidate granularities, the one closest to it (IoU) is
+        taken, as a user picks one of SAM's three answers."""
 
     def settings(self) -> dict:
         """The source's settings (written to lift.json)."""
@@ -34,6 +39,11 @@ class PromptSegmenter(Protocol):
 def frame_seed(seed: int, frame: str) -> np.random.Generator:
     """A generator that depends only on the seed and the frame name (not on the order views are visited)."""
     return np.random.default_rng([int(seed), zlib.crc32(frame.encode())])
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    union = np.logical_or(a, b).sum()
+    return float(np.logical_and(a, b).sum() / union) if union else 0.0
 
 
 def _check_points(points: np.ndarray, frame: str) -> np.ndarray:
@@ -52,13 +62,31 @@ class SimulatedPromptSegmenter:
         self._single = _Single(scene, params)
         self.params = self._single.params
 
-    def segment(self, frame: str, points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    def segment(self, frame: str, points: np.ndarray, rng: np.random.Generator,
+                like: np.ndarray | None = None) -> np.ndarray:
         points = _check_points(points, frame)
         votes = None
         for x, y in points:
-            m = self._single.segment(frame, (float(x), float(y)), rng).astype(np.int32)
+            if like is None:
+                m = self._single.segment(frame, (float(x), float(y)), rng)
+            else:
+                m = self._closest(frame, (float(x), float(y)), rng, np.asarray(like, bool))
+            m = m.astype(np.int32)
             votes = m if votes is None else votes + m
         return 2 * votes >= points.shape[0]
+
+    def _closest(self, frame: str, point: tuple[float, float], rng: np.random.Generator, like: np.ndarray) -> np.ndarray:
+        from .simulate import morph_jitter
+
+        cands = self._single.candidates(frame, point)
+        best = max(sorted(cands), key=lambda k: _iou(cands[k], like))
+        mask = cands[best]
+        radius = int(round(self.params.inconsistency * self.params.jitter_pixels))
+        if radius > 0:
+            jittered = morph_jitter(mask, int(rng.integers(-radius, radius + 1)))
+            if jittered[int(point[1]), int(point[0])]:
+                mask = jittered
+        return mask.copy()
 
     def settings(self) -> dict:
         from ..params import to_dict
@@ -97,7 +125,8 @@ class SamPromptSegmenter:
         self.predictor = SamPredictor(model)
         self._frame = None
 
-    def segment(self, frame: str, points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    def segment(self, frame: str, points: np.ndarray, rng: np.random.Generator,
+                like: np.ndarray | None = None) -> np.ndarray:
         points = _check_points(points, frame)
         if self._frame != frame:
             self.predictor.set_image(self.scene.image(frame))
@@ -105,6 +134,8 @@ class SamPromptSegmenter:
         masks, scores, _ = self.predictor.predict(point_coords=points.astype(np.float32),
                                                   point_labels=np.ones(points.shape[0], np.int64),
                                                   multimask_output=True)
+        if like is not None:
+            return np.asarray(max(masks, key=lambda m: _iou(np.asarray(m, bool), like)), bool)
         return np.asarray(masks[int(np.argmax(scores))], bool)
 
     def settings(self) -> dict:
