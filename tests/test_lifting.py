@@ -312,3 +312,28 @@ def test_lift_refuses_bad_params(tiny_fitted, tmp_path, capsys):
 
         parse_lift_params({"method": "self_prompt", "pixels": 3})
     assert not (tmp_path / "x").exists()
+
+
+def test_simulated_prompts_take_the_granularity_closest_to_like(tiny_fitted):
+    from trace3d.lifting.query import deepest_pixel
+    from trace3d.masks.prompts import SimulatedPromptSegmenter
+    from trace3d.scene import Scene
+
+    scene = Scene.read(tiny_fitted / "scene")
+    source = SimulatedPromptSegmenter(scene, {"inconsistency": 0.0})
+    parts = {o.id for o in scene.objects.objects if o.level == "part"}
+    checked = 0
+    for cam in scene.train_cameras:
+        inst = scene.instances(cam.name)
+        for pid in sorted(parts & set(np.unique(inst).tolist())):
+            part = inst == pid
+            if part.sum() < 30:
+                continue
+            x, y = deepest_pixel(part)
+            point = np.array([[x + 0.5, y + 0.5]])
+            whole = source.segment(cam.name, point, np.random.default_rng(0))
+            closest = source.segment(cam.name, point, np.random.default_rng(0), like=part)
+            assert iou(closest, part) == 1.0
+            assert whole.sum() > part.sum()  # without the hint: the whole object
+            checked += 1
+    assert checked > 0
