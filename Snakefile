@@ -21,6 +21,8 @@ include: "rules/poses.smk"
 include: "rules/masks.smk"
 include: "rules/gaussians.smk"
 include: "rules/trace.smk"
+include: "rules/lift.smk"
+include: "rules/evaluate.smk"
 include: "rules/report.smk"
 
 
@@ -32,3 +34,7 @@ rule reproduce:
         f"{RESULTS}/reconstruction.md",
         [d for s in SCENES for v in VARIANTS.values() for d in variant_outputs(s, v)],
         f"{RESULTS}/tracing.md" if table_variant() is not None else [],
+        # every variant lifted on every scene; scored (Tables 2, 3, 5) where the scene has ground truth
+        expand(f"{RESULTS}/{{scene}}/{{variant}}/lift", scene=SCENES, variant=list(VARIANTS)),
+        rules.tables.output if EVAL_SCENES else [],
+        expand(f"{RESULTS}/plots/evaluation/{{scene}}-{{variant}}.png", scene=EVAL_SCENES, variant=list(VARIANTS)),

@@ -12,6 +12,10 @@ validate(config, schema="../workflow/schemas/config.schema.yaml")
 
 RESULTS = config.get("results", "results")
 SCENES = sorted(config["scenes"])
+# Scenes whose importer writes ground-truth instance maps and objects: the evaluate step scores them.
+# (NVOS's target-view masks need their own protocol; a user's photos have no ground truth.)
+EVAL_KINDS = ("synthetic", "replica")
+EVAL_SCENES = [s for s in SCENES if config["scenes"][s]["kind"] in EVAL_KINDS]
 ENV = "../workflow/envs/trace3d.yaml"
 PACKAGE = Path(workflow.basedir) / "trace3d"
 
@@ -106,8 +110,9 @@ def quoted_params(step):
 #   trace   results/<scene>/trace-<preset>/            (GIT of the raw patches: git.npz)
 #   merge   results/<scene>/merge-<preset>/instances/  (consistent instance maps)
 #   refine  results/<scene>/refine-<preset>-<masks>/   (masks: merged | patches)
-#   later   results/<scene>/<variant>/...              (lifting, evaluation: per variant)
-VARIANT_DEFAULTS = {"preset": "paper", "consistent_masks": True, "density_control": True}
+#   lift    results/<scene>/<variant>/lift/             (lifting: contrastive | self_prompt)
+#   later   results/<scene>/<variant>/...              (evaluation: per variant)
+VARIANT_DEFAULTS = {"preset": "paper", "consistent_masks": True, "density_control": True, "lifting": "contrastive"}
 VARIANTS = {name: {**VARIANT_DEFAULTS, **(v or {})} for name, v in config.get("variants", {"full": {}}).items()}
 
 
@@ -169,3 +174,35 @@ def table_variant():
         if v["consistent_masks"] and v["density_control"]:
             return v
     return None
+
+
+# --- lift (rules/lift.smk) ------------------------------------------------------------------
+def lift_labels(wildcards):
+    return labels_dir(wildcards.scene, variant(wildcards.variant))
+
+
+def lift_labels_arg(wildcards):
+    """The instance maps themselves: a merge folder keeps them in instances/, the patches folder is the maps."""
+    v = variant(wildcards.variant)
+    folder = labels_dir(wildcards.scene, v)
+    return f"{folder}/instances" if v["consistent_masks"] else folder
+
+
+def lift_params(wildcards):
+    v = variant(wildcards.variant)
+    merged = json.loads(step_params(wildcards.scene, "lift"))
+    merged["method"] = v["lifting"]
+    merged.setdefault("preset", v["preset"])
+    if v["lifting"] == "self_prompt":  # contrastive-only keys of a shared `lift` block do not apply
+        for key in LIFT_CONTRASTIVE_ONLY:
+            merged.pop(key, None)
+    else:
+        for key in LIFT_SELF_PROMPT_ONLY:
+            merged.pop(key, None)
+    return shlex.quote(json.dumps(merged, sort_keys=True))
+
+
+LIFT_CONTRASTIVE_ONLY = ("dim", "kernel", "temperature", "temperature_pos", "temperature_neg", "lr", "iterations",
+                         "pixels", "pool_pixels", "init_std", "path", "pca_views", "log_every", "query")
+LIFT_SELF_PROMPT_ONLY = ("prompt_source", "simulate", "sam_checkpoint", "sam_model_type", "sam_device", "points",
+                         "max_views", "gaussian_share", "mask_threshold", "min_prompt_pixels")

@@ -35,7 +35,7 @@ TABLES = ("table2", "table2_psnr", "table3", "table5")
 
 rule tables:
     input:
-        expand(f"{RESULTS}/{{scene}}/{{variant}}/eval", scene=SCENES, variant=list(VARIANTS)),
+        expand(f"{RESULTS}/{{scene}}/{{variant}}/eval", scene=EVAL_SCENES, variant=list(VARIANTS)),
     output:
         **{
             t: report(

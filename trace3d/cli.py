@@ -208,6 +208,20 @@ def _cmd_tables(args: argparse.Namespace) -> None:
     write_tables(Path(args.results), Path(args.out), [Path(e) for e in args.evals] if args.evals else None)
 
 
+def _cmd_lift(args: argparse.Namespace) -> None:
+    from .io import atomic_dir
+    from .lifting.step import parse_lift_params, run_lift
+    from .params import load_params_arg
+    from .scene import Scene
+
+    params = load_params_arg(args.params)
+    parse_lift_params(params)  # refuse bad parameters before reading anything heavy
+    scene = Scene.read(args.scene)
+    with atomic_dir(args.out) as tmp:
+        run_lift(scene, Path(args.poses) if args.poses else None, Path(args.gaussians),
+                 Path(args.labels) if args.labels else None, tmp, params)
+
+
 def _cmd_bench(args: argparse.Namespace) -> None:
     if args.name == "render":
         from .render.bench import run_bench
@@ -221,6 +235,15 @@ def _cmd_bench(args: argparse.Namespace) -> None:
         from .tracing.bench import run_bench
 
         result = run_bench(Path(args.room), quick=args.quick)
+    elif args.name == "lift":
+        from .lifting.bench import run_bench
+        from .params import load_params_arg
+
+        result = run_bench(Path(args.room), quick=args.quick, params=load_params_arg(args.params))
+    elif args.name == "lift-forms":
+        from .lifting.bench import compare_forms
+
+        result = compare_forms(Path(args.room), iterations=300 if args.quick else 1500)
     else:  # argparse restricts choices; kept for clarity
         raise Trace3DError(f"unknown benchmark {args.name!r}.")
     text = json.dumps(result, indent=2)
@@ -353,6 +376,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--evals", nargs="+", help="only these evaluate folders (<results>/<scene>/<variant>/eval)")
     p.set_defaults(func=_cmd_tables)
 
+
+    p = sub.add_parser("lift", help="lift the instance maps into the scene: contrastive features or self-prompting")
+    p.add_argument("--scene", required=True)
+    p.add_argument("--poses", help="poses folder whose cameras the fitted scene lives with")
+    p.add_argument("--gaussians", required=True, help="fitted (or refined) scene folder (point_cloud.ply)")
+    p.add_argument("--labels", help="instance maps <frame>.png (16-bit, 0 = unlabelled): merge/instances or patches")
+    p.add_argument("--out", required=True)
+    p.add_argument("--params", help=params_help + " (method: contrastive | self_prompt, preset: paper | official)")
+    p.set_defaults(func=_cmd_lift)
+
     p = sub.add_parser("summary", help="write the per-scene summary table (results/scenes.md)")
     p.add_argument("scenes", nargs="+", help="scene folders")
     p.add_argument("--out", required=True)
@@ -373,9 +406,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_tracing_table)
 
     p = sub.add_parser("bench", help="benchmarks; print one JSON object")
-    p.add_argument("name", choices=["render", "synthetic", "trace"])
+    p.add_argument("name", choices=["render", "synthetic", "trace", "lift", "lift-forms"])
     p.add_argument("--room", default="results/room0",
-                   help="trace: a fitted room's results folder (scene/, poses/, gaussians/, patches/)")
+                   help="trace, lift: a fitted room's results folder (scene/, poses/, gaussians/, patches/ or "
+                        "merge-paper/instances)")
+    p.add_argument("--params", help="lift: the lift step's parameters (JSON/YAML or @file) whose wall time is measured")
     p.add_argument("--quick", action="store_true", help="smaller sizes (smoke run)")
     p.add_argument("--out", help="also write the JSON here")
     p.set_defaults(func=_cmd_bench)

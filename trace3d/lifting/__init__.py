@@ -56,6 +56,9 @@ class LiftedScene(Protocol):
 # loader(lift_dir, lift_json, model, scene, train_cameras) -> LiftedScene
 Loader = Callable[[Path, dict, GaussianModel, Scene, Sequence[Camera]], LiftedScene]
 _METHODS: dict[str, Loader] = {}
+# the package's own methods, imported only when a lift folder names them (keeps this import cheap)
+_BUILTIN = {"contrastive": ("trace3d.lifting.query", "load_feature_lifted"),
+            "self_prompt": ("trace3d.lifting.self_prompt", "load_self_prompt")}
 
 
 def register_method(name: str, loader: Loader) -> None:
@@ -75,7 +78,12 @@ def load_lifted(lift_dir: str | Path, model: GaussianModel, scene: Scene,
     except json.JSONDecodeError as exc:
         raise Trace3DError(f"{path}: not valid JSON ({exc}).") from exc
     method = info.get("method")
+    if method not in _METHODS and method in _BUILTIN:
+        import importlib
+
+        module, name = _BUILTIN[method]
+        register_method(method, getattr(importlib.import_module(module), name))
     if method not in _METHODS:
-        known = ", ".join(sorted(_METHODS)) or "none"
+        known = ", ".join(sorted(set(_METHODS) | set(_BUILTIN))) or "none"
         raise Trace3DError(f"{path}: unknown lifting method {method!r} (known: {known}).")
     return _METHODS[method](lift_dir, info, model, scene, train_cameras)

@@ -1,0 +1,29 @@
+# Lifting: contrastive features (or self-prompting settings) per variant, on the variant's labels and Gaussians.
+# The variant's `lifting` (contrastive | self_prompt) and `preset` join the scene's `lift` step params.
+
+
+rule lift:
+    input:
+        scene=f"{RESULTS}/{{scene}}/scene",
+        poses=f"{RESULTS}/{{scene}}/poses",
+        gaussians=lambda w: gaussians_dir(w.scene, variant(w.variant)),
+        labels=lift_labels,
+    output:
+        directory(f"{RESULTS}/{{scene}}/{{variant}}/lift"),
+    params:
+        p=lift_params,
+        labels=lift_labels_arg,
+        code=code_version("scene.py", "render", "gaussians.py", "lifting", "masks", "tracing/git.py"),
+    threads: 2
+    resources:
+        mem_mb=4000,
+        runtime=60,
+    log:
+        f"{RESULTS}/logs/{{scene}}/{{variant}}/lift.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{scene}}/{{variant}}/lift.tsv"
+    conda:
+        ENV
+    shell:
+        "trace3d --threads {threads} lift --scene {input.scene} --poses {input.poses} --gaussians {input.gaussians}"
+        " --labels {params.labels} --out {output} --params {params.p} > {log} 2>&1"

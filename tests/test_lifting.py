@@ -1,0 +1,339 @@
+"""Lifting: pixel blending weights vs the rasterizer, the contrastive loss, query-point finding,
+self-prompting, and the lift step end to end on a tiny scene."""
+
+from __future__ import annotations
+
+import json
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads OpenMP (spinning waits stall a busy box)
+
+import numpy as np
+import pytest
+import torch
+
+from test_tracing import camera_at, concat, grid_model, pixel_x_world, two_objects
+from trace3d.errors import ConfigError, Trace3DError
+from trace3d.lifting import ObjectQuery, load_lifted
+from trace3d.lifting.contrastive import (ContrastiveParams, ContrastiveTrainer, contrastive_loss,
+                                         contrastive_loss_reference)
+from trace3d.lifting.query import FeatureLifted, QueryParams, find_query_points, iou, trace_object
+from trace3d.render import render
+from trace3d.render.pixel_weights import pixel_weights
+
+
+@pytest.fixture(autouse=True)
+def single_thread():
+    import numba
+
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    yield
+    numba.set_num_threads(threads)
+
+
+def tilted_scene():
+    """Two overlapping layers (so that pixels blend several splats) seen from an oblique camera."""
+    model, truth, cameras = two_objects()
+    back = grid_model(-0.7, 0.7, -0.5, 0.5, 2.6, step=0.07)
+    back.set("opacity_logits", torch.full((len(back),), 0.3))
+    model.set("opacity_logits", torch.full((len(model),), 0.5))
+    return concat(model, back), cameras
+
+
+# ----------------------------------------------------------------------------------------------
+# Pixel weights: the sparse render and its twin, the rasterizer
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("subset", [False, True])
+def test_pixel_weights_match_rasterizer_values_and_gradients(subset):
+    model, cameras = tilted_scene()
+    cam = cameras[1]
+    splats = model.splats()
+    rng = np.random.default_rng(0)
+    hw = cam.width * cam.height
+    pixels = np.sort(rng.choice(hw, 300, replace=False)) if subset else None
+    weights = pixel_weights(splats, cam, pixels)
+    rows = np.arange(hw) if pixels is None else pixels
+    assert weights.nnz > 2 * rows.size  # pixels blend several splats: a real test of the blending
+    features = torch.randn(len(model), 16, generator=torch.Generator().manual_seed(1), requires_grad=True)
+    raster = render(splats, cam, features).features.reshape(-1, 16)[torch.from_numpy(rows)]
+    sparse = weights.render(features)
+    torch.testing.assert_close(sparse, raster, rtol=1e-5, atol=1e-5)
+    upstream = torch.randn_like(sparse)
+    (g_raster,) = torch.autograd.grad((raster * upstream).sum(), features)
+    (g_sparse,) = torch.autograd.grad((sparse * upstream).sum(), features)
+    torch.testing.assert_close(g_sparse, g_raster, rtol=1e-4, atol=1e-5)
+    # the CSR product against its loop twin, and a row subset against the full rows
+    if subset:
+        ref = weights.render_reference(features)
+        torch.testing.assert_close(sparse, ref, rtol=1e-5, atol=1e-6)
+        part = weights.rows(np.array([5, 0, 17]))
+        torch.testing.assert_close(part.render(features), sparse[[5, 0, 17]])
+
+
+def test_pixel_weights_refuse_bad_pixels():
+    model, cameras = tilted_scene()
+    with pytest.raises(Trace3DError, match="distinct"):
+        pixel_weights(model.splats(), cameras[0], np.array([3, 3]))
+    with pytest.raises(Trace3DError, match="lie in"):
+        pixel_weights(model.splats(), cameras[0], np.array([-1]))
+
+
+# ----------------------------------------------------------------------------------------------
+# The contrastive loss
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kernel", ["official", "gaussian", "printed"])
+def test_loss_matches_its_reference(kernel):
+    gen = torch.Generator().manual_seed(0)
+    feats = torch.randn(37, 16, generator=gen, dtype=torch.float64, requires_grad=True)
+    labels = torch.randint(1, 5, (37,), generator=gen)
+    kw = {"kernel": kernel, "temperature": 0.5, "temperature_pos": 10.0, "temperature_neg": 2.0}
+    fast = contrastive_loss(feats, labels, chunk=8, **kw)
+    slow = contrastive_loss_reference(feats, labels, **kw)
+    torch.testing.assert_close(fast, slow)
+    (g_fast,) = torch.autograd.grad(fast, feats)
+    (g_slow,) = torch.autograd.grad(slow, feats)
+    torch.testing.assert_close(g_fast, g_slow)
+
+
+def test_loss_pulls_positives_and_pushes_negatives():
+    feats = torch.tensor([[0.0, 0.0], [0.5, 0.0], [1.0, 0.0], [1.5, 0.0]], requires_grad=True)
+    labels = torch.tensor([1, 1, 2, 2])
+    loss = contrastive_loss(feats, labels)
+    loss.backward()
+    step = feats.detach() - 0.1 * feats.grad
+    d = torch.cdist(step, step)
+    d0 = torch.cdist(feats.detach(), feats.detach())
+    assert d[0, 1] < d0[0, 1] and d[2, 3] < d0[2, 3]  # positives pulled together
+    assert d[1, 2] > d0[1, 2]  # the nearest negatives pushed apart
+    well = torch.tensor([[0.0, 0.0], [0.1, 0.0], [5.0, 0.0], [5.1, 0.0]])
+    assert contrastive_loss(well, labels) < loss  # separated clusters have the lower loss
+
+
+def label_maps_of(cameras):
+    """Object 1 (x in [-1, 0)), object 2 (x in [0, 1)), 0 (unlabelled) around them (|y| < 0.6 on z = 2)."""
+    out = []
+    for c in cameras:
+        x = pixel_x_world(c)
+        y = ((np.arange(c.height) + 0.5 - c.K[1, 2]) / c.K[1, 1] * 2.0)[:, None]
+        empty = (np.abs(x) >= 0.97) | (np.abs(y) >= 0.57)
+        out.append(np.where(empty, 0, np.where(x < 0.0, 1, 2)).astype(np.int64))
+    return out
+
+
+def test_loss_and_gradient_agree_through_both_paths():
+    model, cameras = tilted_scene()
+    params = ContrastiveParams(pixels=200, pool_pixels=400, iterations=1)
+    trainer = ContrastiveTrainer(model, cameras, label_maps_of(cameras), params)
+    for _ in range(2):
+        v, rows = trainer.sample()
+        grads = []
+        values = []
+        for path in ("sparse", "raster"):
+            trainer.features.grad = None
+            loss = trainer.loss_at(v, rows, path)
+            loss.backward()
+            values.append(float(loss.detach()))
+            grads.append(trainer.features.grad.clone())
+        assert values[0] == pytest.approx(values[1], rel=1e-5)
+        torch.testing.assert_close(grads[0], grads[1], rtol=1e-4, atol=1e-7)
+        assert grads[0].abs().sum() > 0
+
+
+# ----------------------------------------------------------------------------------------------
+# Query-point finding
+# ----------------------------------------------------------------------------------------------
+
+
+def test_query_points_on_a_toy_feature_map():
+    H, W = 30, 40
+    fmap = np.zeros((H, W, 3), np.float32)
+    fmap[:, :12] = [1, 0, 0]  # A
+    fmap[:, 12:25] = [0, 1, 0]  # B
+    fmap[:, 25:] = [0, 0, 1]  # C
+    fmap += np.random.default_rng(0).normal(0, 0.02, fmap.shape).astype(np.float32)
+    a = np.zeros((H, W), bool)
+    a[:, :12] = True
+    one = find_query_points(fmap, a)
+    assert one.features.shape == (1, 3) and iou(one.mask(fmap), a) == 1.0
+    ac = a.copy()
+    ac[:, 25:] = True  # two clusters far apart in feature space: needs a second query point
+    two = find_query_points(fmap, ac)
+    assert two.features.shape[0] == 2 and iou(two.mask(fmap), ac) > 0.9  # precision bound: <= 10 % spill per point
+    assert two.ious[1] > two.ious[0]
+    capped = find_query_points(fmap, ac, QueryParams(max_queries=1))
+    assert capped.features.shape[0] == 1 and iou(capped.mask(fmap), ac) < 0.8
+    with pytest.raises(Trace3DError, match="empty"):
+        find_query_points(fmap, np.zeros((H, W), bool))
+
+
+# ----------------------------------------------------------------------------------------------
+# Lifting separates two objects
+# ----------------------------------------------------------------------------------------------
+
+
+def test_contrastive_lifting_separates_two_objects():
+    model, truth, cameras = two_objects()
+    maps = label_maps_of(cameras)
+    params = ContrastiveParams(kernel="gaussian", temperature=1.0, pixels=256, pool_pixels=1024, iterations=150,
+                               lr=0.02)
+    trainer = ContrastiveTrainer(model, cameras, maps, params)
+    history = trainer.train(params.iterations)
+    assert np.mean([v for _, v in history[-3:]]) < 0.5 * history[0][1]
+    lifted = FeatureLifted(model, trainer.features.detach().numpy(), cameras)
+    for obj in (1, 2):
+        query = ObjectQuery("a", maps[0] == obj, obj)
+        masks = lifted.object_masks(query, cameras)
+        assert iou(masks[0], maps[0] == obj) > 0.9  # (the boundary pixels blend both objects)
+        assert iou(masks[1], maps[1] == obj) > 0.85  # the other view
+        gaussians = lifted.object_gaussians(query)
+        assert (gaussians == (truth == obj)).mean() > 0.9
+
+
+def test_trace_object_majority():
+    model, truth, cameras = two_objects()
+    masks = [pixel_x_world(c) < 0.0 for c in cameras]
+    got = trace_object(model, cameras, masks)
+    visible = trace_object(model, cameras, [np.ones_like(m) for m in masks])  # every seen Gaussian
+    assert (got[visible] == (truth[visible] == 1)).mean() > 0.95
+
+
+# ----------------------------------------------------------------------------------------------
+# The steps on a tiny synthetic room
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def tiny_fitted(tmp_path_factory):
+    from trace3d.cli import main
+
+    root = tmp_path_factory.mktemp("tiny_lift")
+    synthetic = json.dumps({"seed": 5, "width": 48, "height": 36, "num_views": 8, "test_every": 4,
+                            "num_objects": 6, "supersample": 1})
+    train = json.dumps({"schedule_scale": 1.0, "iterations": 80, "densify_from": 10, "densify_until": 50,
+                        "densify_interval": 10, "sh_degree": 0, "device": "cpu", "max_gaussians": 4000})
+    assert main(["scene", "synthetic", "--out", str(root / "scene"), "--params", synthetic]) == 0
+    assert main(["poses", "--scene", str(root / "scene"), "--out", str(root / "poses"), "--params", "{mode: dataset}"]) == 0
+    assert main(["gaussians", "--scene", str(root / "scene"), "--poses", str(root / "poses"), "--out",
+                 str(root / "gaussians"), "--params", train]) == 0
+    return root
+
+
+def _largest_object_query(scene, cameras):
+    train = [c for c in cameras if c.split == "train"]
+    best = None
+    for cam in train:
+        inst = scene.instances(cam.name)
+        ids, counts = np.unique(inst[inst > 0], return_counts=True)
+        for i, n in zip(ids, counts):
+            # an object that is whole in the view (not the room's walls: they touch every border)
+            m = inst == i
+            if m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any():
+                continue
+            if best is None or n > best[0]:
+                best = (n, cam.name, int(i))
+    _, frame, obj = best
+    return ObjectQuery(frame, scene.instances(frame) == obj, obj)
+
+
+def test_lift_step_end_to_end_and_deterministic(tiny_fitted, tmp_path):
+    from trace3d.cli import main
+    from trace3d.scene import Scene
+    from trace3d.tracing.git import load_fitted
+
+    root = tiny_fitted
+    params = json.dumps({"method": "contrastive", "preset": "official", "iterations": 60, "pixels": 256,
+                         "pool_pixels": 512, "lr": 0.02, "pca_views": 2})
+    for run in ("a", "b"):
+        assert main(["lift", "--scene", str(root / "scene"), "--poses", str(root / "poses"), "--gaussians",
+                     str(root / "gaussians"), "--labels", str(root / "scene" / "instances"), "--out",
+                     str(tmp_path / run), "--params", params]) == 0
+    a, b = tmp_path / "a", tmp_path / "b"
+    np.testing.assert_array_equal(np.load(a / "features.npy"), np.load(b / "features.npy"))
+    assert (a / "loss.csv").read_text() == (b / "loss.csv").read_text()
+    for name in ("loss.png", "pca.png"):
+        assert (a / name).stat().st_size > 1000
+    info = json.loads((a / "lift.json").read_text())
+    assert info["method"] == "contrastive" and info["params"]["kernel"] == "official"
+    assert info["final_loss"] < float((a / "loss.csv").read_text().splitlines()[1].split(",")[1])
+    scene = Scene.read(root / "scene")
+    model, cameras = load_fitted(scene, root / "poses", root / "gaussians")
+    assert np.load(a / "features.npy").shape == (len(model), 16)
+    train = [c for c in cameras if c.split == "train"]
+    lifted = load_lifted(a, model, scene, train)
+    query = _largest_object_query(scene, cameras)
+    ref = next(c for c in train if c.name == query.reference)
+    assert iou(lifted.object_masks(query, [ref])[0], query.mask) > 0.6
+    assert lifted.object_gaussians(query).dtype == bool
+
+    # self-prompting with the simulated source (exact masks) recovers the object in the test views
+    assert main(["lift", "--scene", str(root / "scene"), "--poses", str(root / "poses"), "--gaussians",
+                 str(root / "gaussians"), "--out", str(tmp_path / "sp"), "--params",
+                 json.dumps({"method": "self_prompt", "simulate": {"inconsistency": 0.0}})]) == 0
+    sp_info = json.loads((tmp_path / "sp" / "lift.json").read_text())
+    assert sp_info["method"] == "self_prompt" and sp_info["source"]["source"] == "simulated"
+    sp = load_lifted(tmp_path / "sp", model, scene, train)
+    gaussians = sp.object_gaussians(query)
+    assert 0 < gaussians.sum() < len(model) // 2
+    ious = []
+    for cam in cameras:
+        truth = scene.instances(cam.name) == query.object_id
+        if truth.sum() >= 20:
+            ious.append(iou(sp.object_masks(query, [cam])[0], truth))
+    assert ious and np.mean(ious) > 0.6
+    again = load_lifted(tmp_path / "sp", model, scene, train)
+    np.testing.assert_array_equal(again.object_gaussians(query), gaussians)
+
+
+def test_sam_prompt_source_names_what_is_missing(tiny_fitted, tmp_path):
+    from trace3d.masks.prompts import SamPromptSegmenter
+    from trace3d.scene import Scene
+
+    scene = Scene.read(tiny_fitted / "scene")
+    with pytest.raises(Trace3DError, match="checkpoint") as err:
+        SamPromptSegmenter(scene, None)
+    assert "simulated" in str(err.value)
+    with pytest.raises(Trace3DError, match="does not exist"):
+        SamPromptSegmenter(scene, str(tmp_path / "nope.pth"))
+
+
+def test_lift_refuses_bad_params(tiny_fitted, tmp_path, capsys):
+    from trace3d.cli import main
+
+    assert main(["lift", "--scene", str(tiny_fitted / "scene"), "--gaussians", str(tiny_fitted / "gaussians"),
+                 "--out", str(tmp_path / "x"), "--params", '{"method": "magic"}']) == 2
+    assert "magic" in capsys.readouterr().err
+    with pytest.raises(ConfigError, match="unknown parameter"):
+        from trace3d.lifting.step import parse_lift_params
+
+        parse_lift_params({"method": "self_prompt", "pixels": 3})
+    assert not (tmp_path / "x").exists()
+
+
+def test_simulated_prompts_take_the_granularity_closest_to_like(tiny_fitted):
+    from trace3d.lifting.query import deepest_pixel
+    from trace3d.masks.prompts import SimulatedPromptSegmenter
+    from trace3d.scene import Scene
+
+    scene = Scene.read(tiny_fitted / "scene")
+    source = SimulatedPromptSegmenter(scene, {"inconsistency": 0.0})
+    parts = {o.id for o in scene.objects.objects if o.level == "part"}
+    checked = 0
+    for cam in scene.train_cameras:
+        inst = scene.instances(cam.name)
+        for pid in sorted(parts & set(np.unique(inst).tolist())):
+            part = inst == pid
+            if part.sum() < 30:
+                continue
+            x, y = deepest_pixel(part)
+            point = np.array([[x + 0.5, y + 0.5]])
+            whole = source.segment(cam.name, point, np.random.default_rng(0))
+            closest = source.segment(cam.name, point, np.random.default_rng(0), like=part)
+            assert iou(closest, part) == 1.0
+            assert whole.sum() > part.sum()  # without the hint: the whole object
+            checked += 1
+    assert checked > 0

@@ -1,0 +1,85 @@
+"""The ``lift`` step: ``params.method`` picks contrastive lifting or self-prompting.
+
+Outputs (in ``out_dir``):
+
+- ``lift.json``: method, resolved params, seconds (and, for contrastive lifting, the final loss,
+  the pixel-weight memory and timings);
+- contrastive: ``features.npy`` [N, D] float32 in the Gaussians' PLY order, ``loss.csv``,
+  ``loss.png``, ``pca.png`` (PCA of the rendered feature map on a few test views beside RGB);
+- self_prompt: nothing else (self-prompting runs per query; lift.json names the mask source, which
+  is checked here so that a missing SAM fails at this step, not at evaluation).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+METHODS = ("contrastive", "self_prompt")
+
+
+def parse_lift_params(params: dict | None):
+    """The method's parameter dataclass from the step's mapping (``method`` defaults to contrastive)."""
+    from ..params import from_mapping
+
+    params = dict(params or {})
+    method = params.get("method", "contrastive")
+    if method == "contrastive":
+        from .contrastive import ContrastiveParams
+
+        return from_mapping(ContrastiveParams, params, "lift params")
+    if method == "self_prompt":
+        from .self_prompt import SelfPromptParams
+
+        return from_mapping(SelfPromptParams, params, "lift params")
+    raise ConfigError(f"lift params.method: {method!r} is not one of {list(METHODS)}.")
+
+
+def run_lift(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Path | None, out_dir: Path,
+             params: dict, progress: bool = True) -> dict:
+    """Run the lift step into ``out_dir``; returns the lift.json content."""
+    from ..io import write_json
+    from ..params import to_dict
+    from ..tracing.git import load_fitted, load_label_maps
+
+    p = parse_lift_params(params)
+    out_dir = Path(out_dir)
+    start = time.perf_counter()
+    model, cameras = load_fitted(scene, poses_dir, gaussians_dir)
+    train = [c for c in cameras if c.split == "train"]
+    if p.method == "self_prompt":
+        from .self_prompt import make_prompt_segmenter
+
+        segmenter = make_prompt_segmenter(scene, p)
+        info = {"method": "self_prompt", "params": to_dict(p), "source": segmenter.settings(),
+                "gaussians": len(model), "seconds": time.perf_counter() - start}
+        write_json(out_dir / "lift.json", info)
+        return info
+
+    from .contrastive import lift_features, loss_picture, pca_picture, write_history
+
+    if labels_dir is None:
+        raise ConfigError("lift: contrastive lifting needs --labels (the consistent instance maps).")
+    maps = load_label_maps(labels_dir, [c.name for c in train], "instance map")
+    features, history, timing = lift_features(model, train, maps, p, progress=progress)
+    np.save(out_dir / "features.npy", features)
+    write_history(out_dir / "loss.csv", history)
+    loss_picture(out_dir / "loss.png", history)
+    test = [c for c in cameras if c.split == "test"] or train
+    views = [test[i] for i in np.linspace(0, len(test) - 1, min(p.pca_views, len(test))).round().astype(int)]
+    pca_picture(out_dir / "pca.png", model, views, features, scene, p.near)
+    tail = [v for _, v in history[-max(1, len(history) // 20):]]
+    info = {"method": "contrastive", "params": to_dict(p), "gaussians": len(model), "dim": int(features.shape[1]),
+            "seconds": time.perf_counter() - start, "final_loss": float(np.mean(tail)) if tail else None,
+            **timing}
+    write_json(out_dir / "lift.json", info)
+    log.info("contrastive lifting: %d Gaussians, %d iterations, final loss %.4f, %.1f s", len(model), p.iterations,
+             info["final_loss"], info["seconds"])
+    return info

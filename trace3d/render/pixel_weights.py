@@ -1,0 +1,170 @@
+"""Per-pixel blending weights of a frozen scene: a feature render as a sparse matrix product.
+
+With the geometry frozen, the feature rendered at pixel x is linear in the per-Gaussian features:
+
+    F(x) = sum_k w_k(x) f_k            (zero background)
+
+where w_k(x) = alpha_k(x) T_k(x) is splat k's blending weight at x. :func:`pixel_weights` computes
+these weights once for a view (or a subset of its pixels) as a CSR matrix A [P, N] (pixels x
+Gaussians) with a tracing pass over the rasterizer's tiles: GIT with one label per pixel, so the
+same kernel (:func:`trace3d.render.kernels.trace_weights`) and the same early termination as the
+rasterizer. A feature render is then ``A @ f`` and its gradient ``A^T @ g`` (:meth:`PixelWeights.render`).
+The twin is :func:`trace3d.render.render` with features requiring grad (tests compare both, values
+and gradients).
+
+Memory: A has one entry per (pixel, contributing splat); on a default room (160 x 120 px, about 80k
+Gaussians) that is a few tens of splats per pixel, so keep the weights of a pixel subset per view
+(the lifting step does) rather than of every pixel of every view.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from typing import Optional
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..errors import Trace3DError
+from ..scene import Camera
+from .projection import Splats, check_splats
+
+
+@dataclasses.dataclass
+class PixelWeights:
+    """Blending weights of P pixels of one view over N Gaussians, CSR.
+
+    Attributes:
+        pixels: [P] int64 flat pixel indices (y * W + x) of the rows.
+        indptr: [P + 1] int64 row pointers.
+        indices: [E] int32 Gaussian index of each entry.
+        weights: [E] float32 blending weight w_k(x) of each entry.
+        num_gaussians: N.
+        width, height: the view's size.
+    """
+
+    pixels: np.ndarray
+    indptr: np.ndarray
+    indices: np.ndarray
+    weights: np.ndarray
+    num_gaussians: int
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        self._fwd: Optional[Tensor] = None
+        self._bwd: Optional[Tensor] = None
+
+    @property
+    def nnz(self) -> int:
+        return int(self.indices.size)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the CSR arrays (:meth:`render` adds the transpose, about as much again)."""
+        return int(self.pixels.nbytes + self.indptr.nbytes + self.indices.nbytes + self.weights.nbytes)
+
+    def matrix(self) -> Tensor:
+        """A as a torch sparse CSR tensor [P, N] (float32)."""
+        if self._fwd is None:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)  # "sparse CSR support is in beta"
+                self._fwd = torch.sparse_csr_tensor(torch.from_numpy(self.indptr.astype(np.int32)),
+                                                    torch.from_numpy(self.indices), torch.from_numpy(self.weights),
+                                                    (self.pixels.size, self.num_gaussians), check_invariants=False)
+        return self._fwd
+
+    def transpose_matrix(self) -> Tensor:
+        """A^T as a torch sparse CSR tensor [N, P] (float32)."""
+        if self._bwd is None:
+            order = np.argsort(self.indices, kind="stable")
+            rows = np.repeat(np.arange(self.pixels.size, dtype=np.int32), np.diff(self.indptr))
+            indptr = np.zeros(self.num_gaussians + 1, np.int32)
+            np.cumsum(np.bincount(self.indices, minlength=self.num_gaussians), out=indptr[1:])
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)
+                self._bwd = torch.sparse_csr_tensor(torch.from_numpy(indptr), torch.from_numpy(rows[order]),
+                                                    torch.from_numpy(self.weights[order]),
+                                                    (self.num_gaussians, self.pixels.size), check_invariants=False)
+        return self._bwd
+
+    def rows(self, which: np.ndarray) -> "PixelWeights":
+        """The weights of a subset of the rows (``which``: [Q] int64 row positions)."""
+        which = np.asarray(which, np.int64)
+        starts, stops = self.indptr[which], self.indptr[which + 1]
+        counts = stops - starts
+        indptr = np.zeros(which.size + 1, np.int64)
+        np.cumsum(counts, out=indptr[1:])
+        take = np.repeat(starts - indptr[:-1], counts) + np.arange(indptr[-1])
+        return PixelWeights(self.pixels[which], indptr, self.indices[take], self.weights[take],
+                            self.num_gaussians, self.width, self.height)
+
+    def render(self, features: Tensor) -> Tensor:
+        """Rendered features of the P pixels: [P, D] = A @ features ([N, D]), differentiable in features."""
+        if features.dim() != 2 or features.shape[0] != self.num_gaussians:
+            raise Trace3DError(f"pixel weights: features must be [N={self.num_gaussians}, D], got {tuple(features.shape)}.")
+        return _SparseRender.apply(features, self)
+
+    def render_reference(self, features: Tensor) -> Tensor:
+        """Slow twin of :meth:`render`: a dense loop over the rows ([P, D], autograd through indexing)."""
+        out = []
+        for r in range(self.pixels.size):
+            a, b = int(self.indptr[r]), int(self.indptr[r + 1])
+            idx = torch.from_numpy(self.indices[a:b].astype(np.int64))
+            w = torch.from_numpy(self.weights[a:b]).to(features.dtype)
+            out.append((w[:, None] * features[idx]).sum(0))
+        return torch.stack(out) if out else features.new_zeros(0, features.shape[1])
+
+
+class _SparseRender(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, features: Tensor, weights: PixelWeights) -> Tensor:
+        ctx.weights = weights
+        dtype = features.dtype
+        return (weights.matrix() @ features.detach().float()).to(dtype)
+
+    @staticmethod
+    def backward(ctx, v_out: Tensor):
+        weights: PixelWeights = ctx.weights
+        v_features = (weights.transpose_matrix() @ v_out.float()).to(v_out.dtype)
+        return v_features, None
+
+
+def pixel_weights(splats: Splats, camera: Camera, pixels: Optional[np.ndarray] = None, near: float = 0.01) -> PixelWeights:
+    """Blending weights of ``pixels`` of ``camera`` (every pixel when None) over the N splats.
+
+    Args:
+        splats: N splats (geometry is read, never differentiated).
+        camera: the view.
+        pixels: [P] flat pixel indices y * W + x (distinct), or None for all H * W pixels in order.
+        near: near plane, as in :func:`trace3d.render.render`.
+    Returns:
+        :class:`PixelWeights` whose row r holds w_k(pixels[r]) for every splat k with non-zero weight.
+    """
+    from .core import trace
+
+    n = check_splats(splats)
+    hw = camera.height * camera.width
+    if pixels is None:
+        pixels = np.arange(hw, dtype=np.int64)
+    pixels = np.asarray(pixels, np.int64).ravel()
+    if pixels.size and (pixels.min() < 0 or pixels.max() >= hw):
+        raise Trace3DError(f"pixel weights: pixel indices of camera {camera.name!r} must lie in [0, {hw}).")
+    if np.unique(pixels).size != pixels.size:
+        raise Trace3DError(f"pixel weights: pixel indices of camera {camera.name!r} must be distinct.")
+    labels = np.full(hw, -1, np.int64)
+    labels[pixels] = np.arange(pixels.size)
+    if pixels.size == 0:
+        return PixelWeights(pixels, np.zeros(1, np.int64), np.zeros(0, np.int32), np.zeros(0, np.float32), n,
+                            camera.width, camera.height)
+    coo = trace(splats, camera, torch.from_numpy(labels.reshape(camera.height, camera.width)), int(pixels.size),
+                near=near, backend="numba")
+    gauss, row = coo.indices().numpy()
+    vals = coo.values().numpy().astype(np.float32)
+    order = np.lexsort((gauss, row))
+    row, gauss, vals = row[order], gauss[order], vals[order]
+    indptr = np.zeros(pixels.size + 1, np.int64)
+    np.cumsum(np.bincount(row, minlength=pixels.size), out=indptr[1:])
+    return PixelWeights(pixels, indptr, gauss.astype(np.int32), vals, n, camera.width, camera.height)
