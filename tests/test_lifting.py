@@ -202,6 +202,35 @@ def test_trace_object_majority():
     assert (got[visible] == (truth[visible] == 1)).mean() > 0.95
 
 
+def test_trace_object_from_pixel_weights_matches_the_rasterized_trace():
+    """The fast path (products with full-view pixel weights) against GIT tracing of the masks."""
+    from trace3d.lifting.query import summed_weights, trace_object_weights
+    from trace3d.render import trace
+    from trace3d.render.pixel_weights import pixel_weights
+
+    model, truth, cameras = two_objects()
+    masks = [pixel_x_world(c) < 0.0 for c in cameras]
+    weights = [pixel_weights(model.splats(), c) for c in cameras]
+    # the fraction each path computes, so that only exact ties at the share could flip
+    fg = np.zeros(len(model))
+    total = np.zeros(len(model))
+    for cam, m in zip(cameras, masks):
+        w = trace(model.splats(), cam, torch.from_numpy(m.astype(np.int64)), 2).coalesce()
+        rows, cols = w.indices().numpy()
+        np.add.at(total, rows, w.values().double().numpy())
+        np.add.at(fg, rows[cols == 1], w.values().double().numpy()[cols == 1])
+    np.testing.assert_allclose(summed_weights(weights), total, rtol=1e-5, atol=1e-7)
+    fast = trace_object_weights(weights, masks, 0.5)
+    slow = trace_object(model, cameras, masks, 0.5)
+    frac = fg / np.maximum(total, 1e-12)
+    undecided = np.abs(frac - 0.5) < 1e-5
+    assert fast.sum() > 0 and (~fast).sum() > 0
+    np.testing.assert_array_equal(fast[~undecided], slow[~undecided])
+    # a different share moves the answer the same way on both paths
+    np.testing.assert_array_equal(trace_object_weights(weights, masks, 0.9)[~undecided],
+                                  trace_object(model, cameras, masks, 0.9)[~undecided])
+
+
 # ----------------------------------------------------------------------------------------------
 # The steps on a tiny synthetic room
 # ----------------------------------------------------------------------------------------------

@@ -185,6 +185,41 @@ def trace_object(model: GaussianModel, cameras: Sequence[Camera], masks: Sequenc
     return ((total > 0) & (frac > share)).numpy()
 
 
+def trace_object_weights(weights: Sequence, masks: Sequence[np.ndarray], share: float = 0.5,
+                         total: np.ndarray | None = None) -> np.ndarray:
+    """:func:`trace_object` from precomputed full-view blending weights (the fast path).
+
+    With the geometry frozen, the GIT weight of Gaussian i on a view's mask is the sum of its blending
+    weights over the mask's pixels: a product with the view's pixel weights, no rasterization.
+
+    Args:
+        weights: L :class:`~trace3d.render.pixel_weights.PixelWeights` over every pixel of each view.
+        masks: L [H, W] bool object masks.
+        total: [N] the Gaussians' summed weight over the L views (query independent; computed if None).
+    Returns:
+        [N] bool, as :func:`trace_object`.
+    """
+    n = weights[0].num_gaussians if weights else 0
+    fg = np.zeros(n, np.float64)
+    if total is None:
+        total = summed_weights(weights)
+    for w, m in zip(weights, masks):
+        inside = np.asarray(m, bool).ravel()[w.pixels]
+        entries = np.repeat(inside, np.diff(w.indptr))
+        fg += np.bincount(w.indices[entries], weights=w.weights[entries], minlength=n)
+    frac = fg / np.maximum(total, 1e-12)
+    return (total > 0) & (frac > share)
+
+
+def summed_weights(weights: Sequence) -> np.ndarray:
+    """[N] float64: every Gaussian's blending weight summed over all pixels of the given views."""
+    n = weights[0].num_gaussians if weights else 0
+    total = np.zeros(n, np.float64)
+    for w in weights:
+        total += np.bincount(w.indices, weights=w.weights, minlength=n)
+    return total
+
+
 def query_key(query: ObjectQuery) -> str:
     return query.reference + ":" + hashlib.sha1(np.packbits(np.asarray(query.mask, bool)).tobytes()).hexdigest()
 
@@ -204,17 +239,27 @@ class FeatureLifted:
         self._queries: dict[str, QueryPoints] = {}
         self._maps: dict[str, np.ndarray] = {}
         self._gaussians: dict[str, np.ndarray] = {}
+        self._weights: list | None = None
+        self._total: np.ndarray | None = None
 
     def feature_map(self, camera: Camera) -> np.ndarray:
-        """[H, W, D] rendered features (training views cached)."""
+        """[H, W, D] rendered features (cached per view: every query of an evaluation reuses them)."""
         from .contrastive import render_feature_map
 
-        if camera.name in self._maps:
-            return self._maps[camera.name]
-        out = render_feature_map(self.model, camera, self.features, self.params.near)
-        if any(c.name == camera.name for c in self.train_cameras):
-            self._maps[camera.name] = out
-        return out
+        if camera.name not in self._maps:
+            self._maps[camera.name] = render_feature_map(self.model, camera, self.features, self.params.near)
+        return self._maps[camera.name]
+
+    def train_weights(self) -> list:
+        """The full-view pixel weights of every training view, computed once (about 4 MB per 160x120 view)."""
+        from ..render.pixel_weights import pixel_weights
+
+        if self._weights is None:
+            splats = self.model.splats()
+            with torch.no_grad():
+                self._weights = [pixel_weights(splats, c, near=self.params.near) for c in self.train_cameras]
+            self._total = summed_weights(self._weights)
+        return self._weights
 
     def _reference_camera(self, query: ObjectQuery) -> Camera:
         for c in self.train_cameras:
@@ -237,8 +282,8 @@ class FeatureLifted:
         key = query_key(query)
         if key not in self._gaussians:
             masks = self.object_masks(query, self.train_cameras)
-            self._gaussians[key] = trace_object(self.model, self.train_cameras, masks, self.params.gaussian_share,
-                                                self.params.near)
+            self._gaussians[key] = trace_object_weights(self.train_weights(), masks, self.params.gaussian_share,
+                                                        self._total)
         return self._gaussians[key]
 
 
