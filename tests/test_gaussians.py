@@ -307,6 +307,18 @@ def test_extras_round_trip_through_ply(tmp_path):
     assert "property float extra_features_15" in header and "property float extra_generation\n" in header
 
 
+def test_empty_model_round_trips_through_ply(tmp_path):
+    """An object that owns no Gaussians still gets a valid (empty) PLY with the full attribute layout."""
+    model = model_with_extras()
+    empty = model.subset(torch.zeros(len(model), dtype=torch.bool))
+    empty.write_ply(tmp_path / "e.ply")
+    back = GaussianModel.read_ply(tmp_path / "e.ply")
+    assert len(back) == 0 and back.sh_rest.shape[1] == model.sh_rest.shape[1]
+    assert back.extras["features"].shape == (0, 16)
+    header = (tmp_path / "e.ply").read_bytes().split(b"end_header")[0].decode()
+    assert "element vertex 0" in header and "property float f_rest_0" in header
+
+
 def test_extras_follow_subset_and_split():
     from trace3d.training import split_gaussians
 

@@ -362,12 +362,12 @@ class GaussianModel:
                 self.means,
                 self.normals,
                 self.sh_dc.reshape(n, 3),
-                self.sh_rest.transpose(1, 2).reshape(n, -1),  # channel-major
+                self.sh_rest.transpose(1, 2).reshape(n, 3 * self.sh_rest.shape[1]),  # channel-major
                 self.opacity_logits[:, None],
                 self.log_scales,
                 self.quats,
             ]
-            columns += [value.reshape(n, -1) for value in self.extras.values()]
+            columns += [value.reshape(n, math.prod(value.shape[1:])) for value in self.extras.values()]
             data = torch.cat([c.detach().float().cpu() for c in columns], dim=1).numpy()
         names = self.ply_attribute_names()
         assert data.shape[1] == len(names)
