@@ -112,8 +112,15 @@ def quoted_params(step):
 #   refine  results/<scene>/refine-<preset>-<masks>/   (masks: merged | patches)
 #   lift    results/<scene>/<variant>/lift/             (lifting: contrastive | self_prompt)
 #   later   results/<scene>/<variant>/...              (evaluation: per variant)
-VARIANT_DEFAULTS = {"preset": "paper", "consistent_masks": True, "density_control": True, "lifting": "contrastive"}
+#   overlay: lift on each view's masks painted into one label per pixel (no patches, no merge, no
+#   refine: the EgoLifter-style baseline); it excludes consistent_masks and density_control.
+VARIANT_DEFAULTS = {"preset": "paper", "consistent_masks": True, "density_control": True, "lifting": "contrastive",
+                    "overlay": False}
 VARIANTS = {name: {**VARIANT_DEFAULTS, **(v or {})} for name, v in config.get("variants", {"full": {}}).items()}
+for _name, _v in VARIANTS.items():
+    if _v["overlay"] and (_v["consistent_masks"] or _v["density_control"]):
+        raise ValueError(f"config variants.{_name}: overlay: true lifts the overlaid masks directly, so it needs "
+                         f"consistent_masks: false and density_control: false.")
 
 
 wildcard_constraints:
@@ -127,7 +134,10 @@ def variant(name):
 
 
 def labels_dir(scene, v):
-    """The label maps a variant's later stages use: consistent instance maps, or the raw patches."""
+    """The label maps a variant's later stages use: consistent instance maps, the raw patches, or the
+    overlaid masks."""
+    if v["overlay"]:
+        return f"{RESULTS}/{scene}/overlay"
     if v["consistent_masks"]:
         return f"{RESULTS}/{scene}/merge-{v['preset']}"
     return f"{RESULTS}/{scene}/patches"
@@ -193,7 +203,10 @@ def lift_params(wildcards):
     merged = json.loads(step_params(wildcards.scene, "lift"))
     merged["method"] = v["lifting"]
     merged.setdefault("preset", v["preset"])
-    if v["lifting"] == "self_prompt":  # contrastive-only keys of a shared `lift` block do not apply
+    if v["lifting"] == "labels":  # closed-form assignment: only its own keys apply
+        merged = {k: merged[k] for k in LIFT_LABELS_KEYS if k in merged}
+        merged["method"] = "labels"
+    elif v["lifting"] == "self_prompt":  # contrastive-only keys of a shared `lift` block do not apply
         for key in LIFT_CONTRASTIVE_ONLY:
             merged.pop(key, None)
     else:
@@ -202,6 +215,7 @@ def lift_params(wildcards):
     return shlex.quote(json.dumps(merged, sort_keys=True))
 
 
+LIFT_LABELS_KEYS = ("min_confidence", "near")
 LIFT_CONTRASTIVE_ONLY = ("dim", "kernel", "temperature", "temperature_pos", "temperature_neg", "lr", "iterations",
                          "pixels", "pool_pixels", "init_std", "path", "pca_views", "log_every", "query")
 LIFT_SELF_PROMPT_ONLY = ("prompt_source", "simulate", "sam_checkpoint", "sam_model_type", "sam_device", "points",

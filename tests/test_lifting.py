@@ -366,3 +366,29 @@ def test_simulated_prompts_take_the_granularity_closest_to_like(tiny_fitted):
             assert whole.sum() > part.sum()  # without the hint: the whole object
             checked += 1
     assert checked > 0
+
+
+def test_lift_step_labels_method_through_the_cli(tiny_fitted, tmp_path):
+    """`method: labels` (the FlashSplat-style baseline) runs through the lift step and loads back."""
+    from trace3d.cli import main
+    from trace3d.lifting.labels import LabelledScene
+    from trace3d.scene import Scene
+    from trace3d.tracing.git import load_fitted
+
+    root = tiny_fitted
+    args = ["lift", "--scene", str(root / "scene"), "--poses", str(root / "poses"), "--gaussians",
+            str(root / "gaussians"), "--labels", str(root / "scene" / "instances"), "--out", str(tmp_path / "l")]
+    assert main(args + ["--params", json.dumps({"method": "labels", "preset": "paper", "min_confidence": 0.6})]) == 0
+    info = json.loads((tmp_path / "l" / "lift.json").read_text())
+    assert info["method"] == "labels" and info["params"]["min_confidence"] == 0.6
+    scene = Scene.read(root / "scene")
+    model, cameras = load_fitted(scene, root / "poses", root / "gaussians")
+    train = [c for c in cameras if c.split == "train"]
+    lifted = load_lifted(tmp_path / "l", model, scene, train)
+    assert isinstance(lifted, LabelledScene)
+    query = _largest_object_query(scene, cameras)
+    ref = next(c for c in train if c.name == query.reference)
+    assert iou(lifted.object_masks(query, [ref])[0], query.mask) > 0.6
+    # its own parameters only: a contrastive key is refused with one sentence
+    assert main(args[:-1] + [str(tmp_path / "bad"), "--params", json.dumps({"method": "labels", "pixels": 8})]) == 2
+    assert not (tmp_path / "bad").exists()

@@ -127,3 +127,43 @@ def test_end_to_end_tiny(tmp_path):
     again = run_snakemake(tmp_path, "--cores", "2", "reproduce", "-n", config=config)
     assert again.returncode == 0
     assert "Nothing to be done" in again.stdout + again.stderr
+
+
+GRID = {"full": {}, "no_merge": {"consistent_masks": False}, "no_refine": {"density_control": False},
+        "both_off": {"consistent_masks": False, "density_control": False},
+        "egolifter": {"consistent_masks": False, "density_control": False, "overlay": True},
+        "flashsplat": {"density_control": False, "lifting": "labels"}}
+
+
+def test_variants_switch_steps_off_by_handing_their_input_through(tmp_path):
+    """Each variant's lift reads exactly the folders its switches name: a switched-off step is skipped,
+    its input handed on (the raw patches, the plain fit), never a copy."""
+    config = {"scenes": {"a": {"kind": "synthetic"}}, "variants": GRID}
+    result = run_snakemake(tmp_path, "-n", "-p", "reproduce", config=config)
+    assert result.returncode == 0, result.stderr[-3000:]
+    lifts = {line.split("--out results/a/")[1].split("/")[0]: line
+             for line in result.stdout.splitlines() if " lift --scene" in line}
+    assert set(lifts) == set(GRID)
+    expect = {  # variant: (gaussians, labels)
+        "full": ("refine-paper-merged", "merge-paper/instances"),
+        "no_merge": ("refine-paper-patches", "patches"),
+        "no_refine": ("gaussians", "merge-paper/instances"),
+        "both_off": ("gaussians", "patches"),
+        "egolifter": ("gaussians", "overlay"),
+        "flashsplat": ("gaussians", "merge-paper/instances"),
+    }
+    for name, (gaussians, labels) in expect.items():
+        assert f"--gaussians results/a/{gaussians} " in lifts[name], lifts[name]
+        assert f"--labels results/a/{labels} " in lifts[name], lifts[name]
+    assert '"method": "labels"' in lifts["flashsplat"] and '"method": "contrastive"' in lifts["egolifter"]
+    # shared steps once: one trace, one merge, two refines (merged and patches) for six variants
+    shells = result.stdout
+    assert shells.count(" trace --scene") == 1 and shells.count(" merge --scene") == 1
+    assert shells.count(" refine --scene") == 2 and shells.count(" overlay --scene") == 1
+
+
+def test_overlay_variant_with_merging_is_refused(tmp_path):
+    config = {"scenes": {"a": {"kind": "synthetic"}}, "variants": {"bad": {"overlay": True}}}
+    result = run_snakemake(tmp_path, "-n", "reproduce", config=config)
+    assert result.returncode != 0
+    assert "variants.bad: overlay: true" in result.stdout + result.stderr

@@ -22,7 +22,7 @@ from ..errors import ConfigError
 
 log = logging.getLogger(__name__)
 
-METHODS = ("contrastive", "self_prompt")
+METHODS = ("contrastive", "self_prompt", "labels")
 
 
 def parse_lift_params(params: dict | None):
@@ -39,6 +39,11 @@ def parse_lift_params(params: dict | None):
         from .self_prompt import SelfPromptParams
 
         return from_mapping(SelfPromptParams, params, "lift params")
+    if method == "labels":
+        from .labels import LabelsParams
+
+        return from_mapping(LabelsParams, {k: v for k, v in params.items() if k not in ("method", "preset")},
+                            "lift params (labels)")
     raise ConfigError(f"lift params.method: {method!r} is not one of {list(METHODS)}.")
 
 
@@ -50,6 +55,13 @@ def run_lift(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Pat
     from ..tracing.git import load_fitted, load_label_maps
 
     p = parse_lift_params(params)
+    if (params or {}).get("method") == "labels":  # closed-form assignment (FlashSplat-style), no training
+        from .labels import run_labels_lift
+
+        if labels_dir is None:
+            raise ConfigError("lift params.method labels needs --labels (instance maps with ids consistent across views).")
+        return run_labels_lift(scene, poses_dir, gaussians_dir, Path(labels_dir), Path(out_dir),
+                               {k: v for k, v in params.items() if k not in ("method", "preset")})
     out_dir = Path(out_dir)
     start = time.perf_counter()
     model, cameras = load_fitted(scene, poses_dir, gaussians_dir)
