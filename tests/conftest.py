@@ -7,5 +7,18 @@ imports the test modules, after this file.  An explicit value in the environment
 import os
 from pathlib import Path
 
+import pytest
+
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(__file__).resolve().parent.parent / ".numba_cache"))
+
+
+@pytest.fixture
+def single_numba_thread():
+    """Run a test's numba kernels on one thread (restored afterwards)."""
+    import numba
+
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    yield
+    numba.set_num_threads(threads)

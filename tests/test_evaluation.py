@@ -22,14 +22,8 @@ from trace3d.lifting.labels import (LabelledScene, _summed_label_weights_dense, 
 from trace3d.scene import Camera, ObjectTable, Scene, SceneObject, write_frame
 
 
-@pytest.fixture(autouse=True)
-def single_thread():
-    import numba
-
-    threads = numba.get_num_threads()
-    numba.set_num_threads(1)
-    yield
-    numba.set_num_threads(threads)
+# numba kernels on one thread: the tests compare sums whose order must not depend on the pool
+pytestmark = pytest.mark.usefixtures("single_numba_thread")
 
 
 # ----------------------------------------------------------------------------------------------

@@ -22,14 +22,8 @@ from trace3d.render import render
 from trace3d.render.pixel_weights import pixel_weights
 
 
-@pytest.fixture(autouse=True)
-def single_thread():
-    import numba
-
-    threads = numba.get_num_threads()
-    numba.set_num_threads(1)
-    yield
-    numba.set_num_threads(threads)
+# numba kernels on one thread: the tests compare sums whose order must not depend on the pool
+pytestmark = pytest.mark.usefixtures("single_numba_thread")
 
 
 def tilted_scene():

@@ -23,14 +23,8 @@ from trace3d.tracing.refine import (GENERATION, GITStrategy, RefineParams, ambig
 from trace3d.training import split_gaussians
 
 
-@pytest.fixture(autouse=True)
-def single_thread():
-    import numba
-
-    threads = numba.get_num_threads()
-    numba.set_num_threads(1)
-    yield
-    numba.set_num_threads(threads)
+# numba kernels on one thread: the tests compare sums whose order must not depend on the pool
+pytestmark = pytest.mark.usefixtures("single_numba_thread")
 
 
 def stats_from(labels: np.ndarray, prob: np.ndarray | None = None, visibility: np.ndarray | None = None) -> GITStats:
