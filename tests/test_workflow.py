@@ -167,3 +167,15 @@ def test_overlay_variant_with_merging_is_refused(tmp_path):
     result = run_snakemake(tmp_path, "-n", "reproduce", config=config)
     assert result.returncode != 0
     assert "variants.bad: overlay: true" in result.stdout + result.stderr
+
+
+def test_seeds_config_repeats_the_default_grid_over_more_rooms():
+    default = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    seeds = yaml.safe_load((REPO / "config" / "seeds.yaml").read_text())
+    assert seeds["variants"] == default["variants"] and seeds["defaults"] == default["defaults"]
+    assert seeds["results"] != default["results"]  # never mixes with the default run's tables
+    assert [s["synthetic"]["seed"] for s in seeds["scenes"].values()] == list(range(12))
+    result = subprocess.run([SNAKEMAKE, "-n", "--configfile=config/seeds.yaml", "reproduce"], cwd=REPO,
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "room11/full/eval" in result.stdout and "room11/egolifter/lift" in result.stdout
