@@ -111,3 +111,20 @@ def test_cli_tables(tmp_path):
     assert "| full |" in text and "no_refine" not in text
     assert main(["tables", "--results", str(tmp_path / "results"), "--out", str(tmp_path / "x"), "--evals",
                  str(tmp_path / "results" / "room1" / "both_off" / "eval")]) == 2
+
+
+def test_grid_groups_settings_written_before_a_key_existed(tmp_path):
+    """A variant evaluated before `overlay`/`lifting` joined the settings groups with one that spells the
+    defaults out; a real difference (overlay on) still leaves the grid."""
+    root = tmp_path / "results"
+    values = {
+        "full": metrics(0.8, 22.0, 0.9, 0.98, FULL),
+        "no_refine": metrics(0.6, 19.0, 0.85, 0.97, {**NO_REFINE, "overlay": False, "lifting": "contrastive"}),
+        "egolifter": metrics(0.5, 18.0, 0.8, 0.97, {**BOTH_OFF, "variant": "egolifter", "overlay": True}),
+    }
+    for variant, data in values.items():
+        path = root / "room0" / variant / "eval" / "metrics.json"
+        path.parent.mkdir(parents=True)
+        path.write_text(json.dumps(data))
+    t5 = build_tables(root)[3]
+    assert [r[0] for r in t5.rows] == ["no_refine", "full"]

@@ -32,6 +32,8 @@ from ..io import atomic_file
 log = logging.getLogger(__name__)
 
 GRID_KEYS = ("consistent_masks", "density_control")
+# Variant settings that joined later: a metrics.json written before a key existed had its default.
+SETTING_DEFAULTS = {"preset": "paper", "lifting": "contrastive", "overlay": False}
 DASH = "–"
 
 
@@ -179,7 +181,8 @@ def _grid_group(rows: list[Row]) -> list[Row]:
     """The variants that differ only in the two ablation switches: the group of ``full`` (else the
     largest group; ties: the group of the first variant by name)."""
     def other(r: Row) -> str:
-        return json.dumps({k: v for k, v in r.settings.items() if k not in GRID_KEYS} | {"method": r.method},
+        settings = {**SETTING_DEFAULTS, **r.settings}
+        return json.dumps({k: v for k, v in settings.items() if k not in GRID_KEYS} | {"method": r.method},
                           sort_keys=True)
 
     eligible = [r for r in rows if all(isinstance(r.settings.get(k), bool) for k in GRID_KEYS)]
