@@ -81,3 +81,24 @@ rule evaluation_pictures:
         ENV
     shell:
         "cp {input}/pictures.png {output} > {log} 2>&1"
+
+
+# The feature PCA of every contrastive lift (rendered test views), beside the evaluation figures.
+rule lift_pictures:
+    localrule: True
+    input:
+        f"{RESULTS}/{{scene}}/{{variant}}/lift",
+    output:
+        report(
+            f"{RESULTS}/plots/lift/{{scene}}-{{variant}}.png",
+            category="Lifting",
+            subcategory="{variant}",
+            labels={"scene": "{scene}", "variant": "{variant}"},
+            caption="../workflow/report/lift.rst",
+        ),
+    log:
+        f"{RESULTS}/logs/{{scene}}/{{variant}}/lift_pictures.log",
+    conda:
+        ENV
+    shell:
+        "cp {input}/pca.png {output} > {log} 2>&1"

@@ -111,6 +111,7 @@ def test_end_to_end_tiny(tmp_path):
         assert "full" in text, (name, text)
         assert (tables / f"{name}.csv").is_file() and (tables / f"{name}.tex").is_file()
     assert "no_refine" in (tables / "table2.md").read_text() and "raw" in (tables / "table3.md").read_text()
+    assert (tmp_path / "results" / "plots" / "lift" / "a-full.png").stat().st_size > 1000
     report = run_snakemake(tmp_path, "--cores", "1", "reproduce", "--report", str(tmp_path / "report.html"),
                            config=config)
     assert report.returncode == 0, report.stderr[-4000:]
