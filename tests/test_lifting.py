@@ -386,3 +386,7 @@ def test_lift_step_labels_method_through_the_cli(tiny_fitted, tmp_path):
     # its own parameters only: a contrastive key is refused with one sentence
     assert main(args[:-1] + [str(tmp_path / "bad"), "--params", json.dumps({"method": "labels", "pixels": 8})]) == 2
     assert not (tmp_path / "bad").exists()
+    # the closed form needs label maps: no --labels is one sentence and nothing written
+    no_labels = [a for a in args[:-1] if a not in ("--labels", str(root / "scene" / "instances"))]
+    assert main(no_labels + [str(tmp_path / "nolabels"), "--params", json.dumps({"method": "labels"})]) == 2
+    assert not (tmp_path / "nolabels").exists()

@@ -14,9 +14,11 @@ From one reference view and a mask of the target:
 
 The prediction at any camera is the union over query points of {x : ||F(x) - q_j|| <= t_j}.
 The object's Gaussians are traced from the masks predicted at the training views (as the paper
-extracts objects): each view's mask is traced with GIT (weights summed per Gaussian over object and
+extracts objects): each view's mask is traced (weights summed per Gaussian over object and
 background pixels) and a Gaussian is the object's when its object share of the summed weight over
-all views exceeds ``gaussian_share`` (0.5: the majority).
+all views exceeds ``gaussian_share`` (0.5: the majority). The geometry is frozen, so the trace is a
+product with each training view's pixel weights, computed once per lifted scene
+(:func:`trace_object_weights`); :func:`trace_object`, GIT through the rasterizer, is its twin.
 """
 
 from __future__ import annotations

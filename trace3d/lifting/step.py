@@ -60,8 +60,7 @@ def run_lift(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Pat
 
         if labels_dir is None:
             raise ConfigError("lift params.method labels needs --labels (instance maps with ids consistent across views).")
-        return run_labels_lift(scene, poses_dir, gaussians_dir, Path(labels_dir), Path(out_dir),
-                               {k: v for k, v in params.items() if k not in ("method", "preset")})
+        return run_labels_lift(scene, poses_dir, gaussians_dir, Path(labels_dir), Path(out_dir), to_dict(p))
     out_dir = Path(out_dir)
     start = time.perf_counter()
     model, cameras = load_fitted(scene, poses_dir, gaussians_dir)
