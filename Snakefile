@@ -24,6 +24,7 @@ include: "rules/trace.smk"
 include: "rules/lift.smk"
 include: "rules/evaluate.smk"
 include: "rules/report.smk"
+include: "rules/robustness.smk"
 
 
 rule reproduce:
@@ -39,3 +40,5 @@ rule reproduce:
         rules.tables.output if EVAL_SCENES else [],
         expand(f"{RESULTS}/plots/evaluation/{{scene}}-{{variant}}.png", scene=EVAL_SCENES, variant=list(VARIANTS)),
         [f"{RESULTS}/plots/lift/{s}-{n}.png" for s in SCENES for n, v in VARIANTS.items() if v["lifting"] == "contrastive"],
+        # object / NVS mIoU against the simulated mask inconsistency (config `robustness`)
+        rules.robustness.output if ROBUSTNESS.get("scenes") else [],

@@ -2,6 +2,7 @@
 import hashlib
 import json
 import os
+import re
 import shlex
 from pathlib import Path
 
@@ -30,10 +31,6 @@ os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(workflow.basedir) / ".numba_ca
 COMMON_CODE = ("cli.py", "io.py", "params.py", "errors.py", "threads.py", "__init__.py")
 
 
-wildcard_constraints:
-    scene="|".join(SCENES),
-
-
 def deep_merge(base, override):
     """Mapping ``override`` merged over ``base`` key by key (nested mappings merged too)."""
     out = dict(base)
@@ -46,7 +43,63 @@ def deep_merge(base, override):
 
 
 def scene_config(scene):
+    if scene in DERIVED:
+        base, level = DERIVED[scene]
+        return deep_merge(config["scenes"][base], {"masks": {"simulated": {"inconsistency": level}}})
     return config["scenes"][scene]
+
+
+# --- robustness: a room again under other simulated mask-inconsistency levels -----------------
+# A level is a derived scene `<room>@inc<level>` that shares the room's scene, poses and 2DGS fit
+# (its rules read the base room's folders; no copy, no refit) and runs its own masks, patches, trace,
+# merge, refine, overlay, lift and evaluate with `masks: {simulated: {inconsistency: level}}`. The level
+# the room already has is the room itself. Library default of the knob (trace3d.masks.simulate.
+# SimulateParams.inconsistency; a test keeps the two equal):
+SIMULATED_DEFAULT_INCONSISTENCY = 0.5
+ROBUSTNESS = config.get("robustness") or {}
+DERIVED = {}  # derived scene name -> (base scene, level)
+
+
+def base_scene(scene):
+    """The scene whose scene/poses/gaussians folders ``scene`` uses (itself unless derived)."""
+    return DERIVED[scene][0] if scene in DERIVED else scene
+
+
+def robustness_scene(base, level):
+    """The scene that holds ``base`` at mask inconsistency ``level``: ``base`` itself at its own level."""
+    masks = deep_merge(config.get("defaults", {}).get("masks", {}), config["scenes"][base].get("masks", {}))
+    own = masks.get("simulated", {}).get("inconsistency", SIMULATED_DEFAULT_INCONSISTENCY)
+    return base if float(level) == float(own) else f"{base}@inc{float(level):g}"
+
+
+for _base in ROBUSTNESS.get("scenes", []):
+    if _base not in config["scenes"]:
+        raise ValueError(f"config robustness.scenes: '{_base}' is not one of the config's scenes.")
+    _masks = deep_merge(config.get("defaults", {}).get("masks", {}), config["scenes"][_base].get("masks", {}))
+    if _masks.get("source", "simulated") != "simulated":
+        raise ValueError(f"config robustness.scenes: '{_base}' takes its masks from '{_masks['source']}'; "
+                         f"the robustness curve varies the simulated masks' inconsistency, so it needs "
+                         f"masks.source: simulated.")
+    for _level in ROBUSTNESS.get("levels", []):
+        _name = robustness_scene(_base, _level)
+        if _name != _base:
+            DERIVED[_name] = (_base, float(_level))
+ALL_SCENES = SCENES + sorted(DERIVED)
+# scene, poses and gaussians exist for the configured scenes only (derived ones read their base's).
+BASE_SCENE_PATTERN = "|".join(re.escape(s) for s in SCENES)
+
+
+wildcard_constraints:
+    scene="|".join(re.escape(s) for s in ALL_SCENES),
+
+
+def base_folder(step):
+    """An input function: the base scene's ``step`` folder (scene | poses | gaussians)."""
+
+    def inner(wildcards):
+        return f"{RESULTS}/{base_scene(wildcards.scene)}/{step}"
+
+    return inner
 
 
 def step_params(scene, step):
@@ -123,6 +176,12 @@ for _name, _v in VARIANTS.items():
                          f"consistent_masks: false and density_control: false.")
 
 
+for _name in ROBUSTNESS.get("variants", []):
+    if _name not in VARIANTS:
+        raise ValueError(f"config robustness.variants: '{_name}' is not one of the config's variants "
+                         f"({', '.join(VARIANTS)}).")
+
+
 wildcard_constraints:
     preset="paper|official",
     masks="merged|patches",
@@ -148,7 +207,7 @@ def gaussians_dir(scene, v):
     if v["density_control"]:
         masks = "merged" if v["consistent_masks"] else "patches"
         return f"{RESULTS}/{scene}/refine-{v['preset']}-{masks}"
-    return f"{RESULTS}/{scene}/gaussians"
+    return f"{RESULTS}/{base_scene(scene)}/gaussians"
 
 
 def variant_outputs(scene, v):

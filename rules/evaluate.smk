@@ -5,8 +5,8 @@
 
 rule evaluate:
     input:
-        scene=f"{RESULTS}/{{scene}}/scene",
-        poses=f"{RESULTS}/{{scene}}/poses",
+        scene=base_folder("scene"),
+        poses=base_folder("poses"),
         gaussians=lambda w: gaussians_dir(w.scene, variant(w.variant)),
         lift=f"{RESULTS}/{{scene}}/{{variant}}/lift",
     output:

@@ -2,6 +2,8 @@
 
 
 rule gaussians:
+    wildcard_constraints:
+        scene=BASE_SCENE_PATTERN,
     input:
         scene=f"{RESULTS}/{{scene}}/scene",
         poses=f"{RESULTS}/{{scene}}/poses",

@@ -4,8 +4,8 @@
 
 rule lift:
     input:
-        scene=f"{RESULTS}/{{scene}}/scene",
-        poses=f"{RESULTS}/{{scene}}/poses",
+        scene=base_folder("scene"),
+        poses=base_folder("poses"),
         gaussians=lambda w: gaussians_dir(w.scene, variant(w.variant)),
         labels=lift_labels,
     output:

@@ -3,7 +3,7 @@
 
 rule masks:
     input:
-        f"{RESULTS}/{{scene}}/scene",
+        base_folder("scene"),
     output:
         directory(f"{RESULTS}/{{scene}}/masks"),
     params:
@@ -25,7 +25,7 @@ rule masks:
 
 rule patches:
     input:
-        scene=f"{RESULTS}/{{scene}}/scene",
+        scene=base_folder("scene"),
         masks=f"{RESULTS}/{{scene}}/masks",
     output:
         directory(f"{RESULTS}/{{scene}}/patches"),
@@ -51,7 +51,7 @@ rule patches:
 # baselines that lift without patches or merging (EgoLifter-style, FlashSplat-style).
 rule overlay:
     input:
-        scene=f"{RESULTS}/{{scene}}/scene",
+        scene=base_folder("scene"),
         masks=f"{RESULTS}/{{scene}}/masks",
     output:
         directory(f"{RESULTS}/{{scene}}/overlay"),

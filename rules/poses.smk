@@ -2,6 +2,8 @@
 
 
 rule poses:
+    wildcard_constraints:
+        scene=BASE_SCENE_PATTERN,
     input:
         f"{RESULTS}/{{scene}}/scene",
     output:

@@ -2,6 +2,8 @@
 
 
 rule scene:
+    wildcard_constraints:
+        scene=BASE_SCENE_PATTERN,
     output:
         directory(f"{RESULTS}/{{scene}}/scene"),
     params:

@@ -4,9 +4,9 @@
 
 rule trace:
     input:
-        scene=f"{RESULTS}/{{scene}}/scene",
-        poses=f"{RESULTS}/{{scene}}/poses",
-        gaussians=f"{RESULTS}/{{scene}}/gaussians",
+        scene=base_folder("scene"),
+        poses=base_folder("poses"),
+        gaussians=base_folder("gaussians"),
         patches=f"{RESULTS}/{{scene}}/patches",
     output:
         directory(f"{RESULTS}/{{scene}}/trace-{{preset}}"),
@@ -30,7 +30,7 @@ rule trace:
 
 rule merge:
     input:
-        scene=f"{RESULTS}/{{scene}}/scene",
+        scene=base_folder("scene"),
         git=f"{RESULTS}/{{scene}}/trace-{{preset}}",
         patches=f"{RESULTS}/{{scene}}/patches",
     output:
@@ -55,9 +55,9 @@ rule merge:
 
 rule refine:
     input:
-        scene=f"{RESULTS}/{{scene}}/scene",
-        poses=f"{RESULTS}/{{scene}}/poses",
-        gaussians=f"{RESULTS}/{{scene}}/gaussians",
+        scene=base_folder("scene"),
+        poses=base_folder("poses"),
+        gaussians=base_folder("gaussians"),
         labels=refine_labels,
     output:
         directory(f"{RESULTS}/{{scene}}/refine-{{preset}}-{{masks}}"),

@@ -208,6 +208,13 @@ def _cmd_tables(args: argparse.Namespace) -> None:
     write_tables(Path(args.results), Path(args.out), [Path(e) for e in args.evals] if args.evals else None)
 
 
+def _cmd_robustness(args: argparse.Namespace) -> None:
+    from .params import load_params_arg
+    from .report.robustness import write_robustness
+
+    write_robustness(load_params_arg(args.spec), Path(args.out), Path(args.plot) if args.plot else None)
+
+
 def _cmd_lift(args: argparse.Namespace) -> None:
     from .io import atomic_dir
     from .lifting.step import parse_lift_params, run_lift
@@ -375,6 +382,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder (results/tables)")
     p.add_argument("--evals", nargs="+", help="only these evaluate folders (<results>/<scene>/<variant>/eval)")
     p.set_defaults(func=_cmd_tables)
+
+    p = sub.add_parser("robustness", help="object / NVS mIoU per variant against the simulated mask inconsistency")
+    p.add_argument("--spec", required=True,
+                   help="JSON/YAML (or @file): {runs: [{scene, level, variant, eval}], merges: [{scene, level, merge}]}")
+    p.add_argument("--out", required=True, help="Markdown table (results/tables/robustness.md; a CSV beside it)")
+    p.add_argument("--plot", help="PNG of the curves (results/plots/robustness.png)")
+    p.set_defaults(func=_cmd_robustness)
 
 
     p = sub.add_parser("lift", help="lift the instance maps into the scene: contrastive features or self-prompting")

@@ -1,0 +1,50 @@
+# The robustness curve (beyond the paper): object / NVS mIoU of some variants as the simulated masks'
+# inconsistency rises, on the rooms of `robustness.scenes` (derived scenes <room>@inc<level> share the
+# room's scene, poses and 2DGS fit: see rules/common.smk). docs/robustness.md.
+
+
+def robustness_spec():
+    runs, merges = [], []
+    consistent = [VARIANTS[n] for n in ROBUSTNESS.get("variants", []) if VARIANTS[n]["consistent_masks"]]
+    for base in ROBUSTNESS.get("scenes", []):
+        for level in ROBUSTNESS.get("levels", []):
+            scene = robustness_scene(base, level)
+            for name in ROBUSTNESS.get("variants", []):
+                runs.append({"scene": base, "level": float(level), "variant": name,
+                             "eval": f"{RESULTS}/{scene}/{name}/eval"})
+            if consistent:
+                merges.append({"scene": base, "level": float(level),
+                               "merge": f"{RESULTS}/{scene}/merge-{consistent[0]['preset']}"})
+    return {"runs": runs, "merges": merges}
+
+
+rule robustness:
+    input:
+        evals=[r["eval"] for r in robustness_spec()["runs"]],
+        merges=[m["merge"] for m in robustness_spec()["merges"]],
+    output:
+        table=report(
+            f"{RESULTS}/tables/robustness.md",
+            category="Robustness",
+            caption="../workflow/report/robustness.rst",
+        ),
+        csv=f"{RESULTS}/tables/robustness.csv",
+        plot=report(
+            f"{RESULTS}/plots/robustness.png",
+            category="Robustness",
+            caption="../workflow/report/robustness.rst",
+        ),
+    params:
+        spec=lambda w: shlex.quote(json.dumps(robustness_spec(), sort_keys=True)),
+        code=code_version("report/robustness.py"),
+    threads: 1
+    resources:
+        mem_mb=1000,
+        runtime=5,
+    log:
+        f"{RESULTS}/logs/robustness.log",
+    conda:
+        ENV
+    shell:
+        "trace3d --threads {threads} robustness --spec {params.spec} --out {output.table} --plot {output.plot}"
+        " > {log} 2>&1"
