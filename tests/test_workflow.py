@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pandas as pd
 import pytest
 import yaml
 
@@ -85,6 +86,8 @@ def test_end_to_end_tiny(tmp_path):
         "variants": {"full": {}, "no_refine": {"density_control": False}, "raw": {"consistent_masks": False}},
         "scenes": {"a": {"kind": "synthetic", "synthetic": {"seed": 1}},
                    "b": {"kind": "synthetic", "synthetic": {"seed": 2}}},
+        # one more mask level of scene a, on a's fit (0.5 is a itself)
+        "robustness": {"scenes": ["a"], "levels": [0.0, 0.5], "variants": ["no_refine"]},
     }
     result = run_snakemake(tmp_path, "--cores", "2", "reproduce", config=config)
     assert result.returncode == 0, result.stderr[-4000:]
@@ -112,11 +115,19 @@ def test_end_to_end_tiny(tmp_path):
         assert (tables / f"{name}.csv").is_file() and (tables / f"{name}.tex").is_file()
     assert "no_refine" in (tables / "table2.md").read_text() and "raw" in (tables / "table3.md").read_text()
     assert (tmp_path / "results" / "plots" / "lift" / "a-full.png").stat().st_size > 1000
+    # the robustness level: its own masks and evaluation, the base scene's fit (no scene/poses/gaussians)
+    derived = tmp_path / "results" / "a@inc0"
+    assert (derived / "no_refine" / "eval" / "metrics.json").is_file()
+    assert not any((derived / step).exists() for step in ("scene", "poses", "gaussians"))
+    robust = pd.read_csv(tables / "robustness.csv")
+    assert sorted(robust["level"]) == [0.0, 0.5] and set(robust["variant"]) == {"no_refine"}
+    assert (robust["scene"] == "a").all() and robust["object mIoU"].notna().all()
+    assert (tmp_path / "results" / "plots" / "robustness.png").stat().st_size > 1000
     report = run_snakemake(tmp_path, "--cores", "1", "reproduce", "--report", str(tmp_path / "report.html"),
                            config=config)
     assert report.returncode == 0, report.stderr[-4000:]
     html = (tmp_path / "report.html").read_text(errors="replace")
-    assert "table2" in html and "Tables" in html
+    assert "table2" in html and "Tables" in html and "Robustness" in html
     tracing = (tmp_path / "results" / "tracing.md").read_text()
     assert "| a " in tracing and "ARI before" in tracing
     reconstruction = (tmp_path / "results" / "reconstruction.md").read_text()
@@ -180,3 +191,65 @@ def test_seeds_config_repeats_the_default_grid_over_more_rooms():
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "room11/full/eval" in result.stdout and "room11/egolifter/lift" in result.stdout
+
+
+def _robust_config(**robustness):
+    return {"scenes": {"a": {"kind": "synthetic"}, "b": {"kind": "synthetic"}}, "variants": GRID,
+            "robustness": {"scenes": ["a"], "levels": [0.0, 0.5, 1.0],
+                           "variants": ["full", "both_off", "egolifter", "flashsplat"], **robustness}}
+
+
+def test_robustness_levels_share_the_scene_poses_and_fit(tmp_path):
+    """Every mask level of a room runs its own masks ... evaluate on the room's one scene, poses and fit."""
+    result = run_snakemake(tmp_path, "-n", "-p", "reproduce", config=_robust_config())
+    assert result.returncode == 0, result.stderr[-3000:]
+    shells = [line[line.index("trace3d "):] for line in result.stdout.splitlines() if "trace3d --threads" in line]
+    outs = {}  # step -> the folders its jobs write
+    for line in shells:
+        words = line.split()
+        outs.setdefault(words[3], []).append(words[words.index("--out") + 1])
+    for step in ("scene", "poses", "gaussians"):  # one job per configured scene, none for the levels
+        assert sorted(outs[step]) == [f"results/a/{step}", f"results/b/{step}"], outs[step]
+    assert sorted(outs["masks"]) == ["results/a/masks", "results/a@inc0/masks", "results/a@inc1/masks",
+                                     "results/b/masks"]
+    masks = {line.split("--out ")[1].split()[0]: line for line in shells if " masks --scene" in line}
+    assert masks["results/a@inc0/masks"].startswith("trace3d") and '"inconsistency": 0.0' in masks["results/a@inc0/masks"]
+    assert '"inconsistency": 1.0' in masks["results/a@inc1/masks"]
+    assert "inconsistency" not in masks["results/a/masks"] and "results/a@inc0.5/masks" not in masks
+    assert all("--scene results/a/scene " in line for out, line in masks.items() if out.startswith("results/a"))
+    lifts = {line.split("--out ")[1].split()[0]: line for line in shells if " lift --scene" in line}
+    full = lifts["results/a@inc1/full/lift"]
+    assert "--gaussians results/a@inc1/refine-paper-merged " in full and "--labels results/a@inc1/merge-paper/instances " in full
+    assert "--gaussians results/a/gaussians " in lifts["results/a@inc1/both_off/lift"]
+    assert "--labels results/a@inc1/overlay " in lifts["results/a@inc1/egolifter/lift"]
+    assert "results/a@inc1/no_merge/lift" not in lifts  # only the curve's variants run per level
+    assert "results/b@inc1/full/lift" not in lifts
+    robust = [line for line in shells if " robustness --spec" in line]
+    assert len(robust) == 1 and "results/a@inc0/flashsplat/eval" in robust[0] and "results/a/full/eval" in robust[0]
+
+
+@pytest.mark.parametrize("override, message", [
+    ({"scenes": ["c"]}, "robustness.scenes: 'c' is not one of the config's scenes"),
+    ({"variants": ["nope"]}, "robustness.variants: 'nope' is not one of the config's variants"),
+])
+def test_robustness_config_mistakes_are_one_sentence(tmp_path, override, message):
+    result = run_snakemake(tmp_path, "-n", "reproduce", config=_robust_config(**override))
+    assert result.returncode != 0
+    assert message in result.stdout + result.stderr
+
+
+def test_robustness_needs_simulated_masks(tmp_path):
+    config = _robust_config()
+    config["scenes"]["a"]["masks"] = {"source": "files"}
+    result = run_snakemake(tmp_path, "-n", "reproduce", config=config)
+    assert result.returncode != 0
+    assert "needs masks.source: simulated" in result.stdout + result.stderr
+
+
+def test_workflow_default_inconsistency_is_the_librarys():
+    """The workflow names the level a room already has without importing the library: keep them equal."""
+    from trace3d.masks.simulate import SimulateParams
+
+    text = (REPO / "rules" / "common.smk").read_text()
+    value = float(text.split("SIMULATED_DEFAULT_INCONSISTENCY = ")[1].split()[0])
+    assert value == SimulateParams().inconsistency

@@ -1,0 +1,77 @@
+"""The robustness table and plot (trace3d.report.robustness) from hand-made evaluate outputs."""
+
+from __future__ import annotations
+
+import json
+
+import pandas as pd
+import pytest
+
+from trace3d.errors import SceneFormatError, Trace3DError
+from trace3d.report.robustness import write_robustness
+
+
+def _metrics(folder, obj, nvs, psnr=20.0):
+    folder.mkdir(parents=True)
+    (folder / "metrics.json").write_text(json.dumps({
+        "protocol": "standard", "extraction": {"mIoU": obj, "PSNR": psnr}, "nvs": {"mIoU": nvs, "mAcc": 0.9}}))
+    return str(folder)
+
+
+def _merge(folder, ari_before, ari_after):
+    folder.mkdir(parents=True)
+    (folder / "merge.json").write_text(json.dumps({"ground_truth": {
+        "before": {"ari": ari_before, "straddling": 0.1}, "after": {"ari": ari_after, "straddling": 0.2}}}))
+    return str(folder)
+
+
+@pytest.fixture
+def spec(tmp_path):
+    runs, merges = [], []
+    values = {("r1", 0.0, "full"): (0.6, 0.9), ("r1", 1.0, "full"): (0.4, 0.7),
+              ("r2", 0.0, "full"): (0.8, 0.8), ("r2", 1.0, "full"): (0.2, 0.5),
+              ("r1", 0.0, "base"): (0.5, 0.9), ("r1", 1.0, "base"): (0.5, 0.6),
+              ("r2", 0.0, "base"): (0.5, 0.7), ("r2", 1.0, "base"): (0.3, 0.6)}
+    for (scene, level, variant), (obj, nvs) in values.items():
+        runs.append({"scene": scene, "level": level, "variant": variant,
+                     "eval": _metrics(tmp_path / f"{scene}@{level}" / variant / "eval", obj, nvs)})
+    for scene in ("r1", "r2"):
+        for level, (b, a) in ((0.0, (0.9, 0.95)), (1.0, (0.5, 0.7))):
+            merges.append({"scene": scene, "level": level, "merge": _merge(tmp_path / f"{scene}@{level}" / "m", b, a)})
+    return {"runs": runs, "merges": merges}
+
+
+def test_table_is_the_mean_over_rooms_per_level_and_variant(tmp_path, spec):
+    summary = write_robustness(spec, tmp_path / "out" / "robustness.md", tmp_path / "out" / "robustness.png")
+    got = {(r.level, r.variant): (r["object mIoU"], r["object mIoU std"], r["NVS mIoU"]) for _, r in summary.iterrows()}
+    assert got[(0.0, "full")] == pytest.approx((70.0, 10.0, 85.0))
+    assert got[(1.0, "full")] == pytest.approx((30.0, 10.0, 60.0))
+    assert got[(1.0, "base")] == pytest.approx((40.0, 10.0, 60.0))
+    text = (tmp_path / "out" / "robustness.md").read_text()
+    assert "| full" not in text.split("## Object mIoU")[0]  # variants are columns of the level rows
+    assert "70.0" in text and "40.0" in text and "r1, r2" in text
+    assert "0.700" in text  # ARI of the merged maps at level 1, mean over the rooms
+    csv = pd.read_csv(tmp_path / "out" / "robustness.csv")
+    assert len(csv) == 8 and set(csv["variant"]) == {"full", "base"}
+    assert (tmp_path / "out" / "robustness.png").stat().st_size > 1000
+
+
+def test_same_inputs_same_table(tmp_path, spec):
+    write_robustness(spec, tmp_path / "a.md")
+    write_robustness(spec, tmp_path / "b.md")
+    assert (tmp_path / "a.md").read_text() == (tmp_path / "b.md").read_text()
+    assert (tmp_path / "a.csv").read_text() == (tmp_path / "b.csv").read_text()
+
+
+def test_missing_evaluation_is_named(tmp_path, spec):
+    spec["runs"][3]["eval"] = str(tmp_path / "nowhere")
+    with pytest.raises(SceneFormatError, match="nowhere/metrics.json: file is missing"):
+        write_robustness(spec, tmp_path / "t.md")
+    assert not (tmp_path / "t.md").exists()
+
+
+def test_bad_spec_is_refused(tmp_path):
+    with pytest.raises(Trace3DError, match="'runs' must be a non-empty list"):
+        write_robustness({"runs": []}, tmp_path / "t.md")
+    with pytest.raises(Trace3DError, match="lacks eval"):
+        write_robustness({"runs": [{"scene": "a", "level": 0, "variant": "v"}]}, tmp_path / "t.md")
