@@ -38,6 +38,7 @@ rule reproduce:
         # every variant lifted on every scene; scored (Tables 2, 3, 5) where the scene has ground truth
         expand(f"{RESULTS}/{{scene}}/{{variant}}/lift", scene=SCENES, variant=list(VARIANTS)),
         rules.tables.output if EVAL_SCENES else [],
+        rules.tables_official.output if EVAL_SCENES else [],
         expand(f"{RESULTS}/plots/evaluation/{{scene}}-{{variant}}.png", scene=EVAL_SCENES, variant=list(VARIANTS)),
         [f"{RESULTS}/plots/lift/{s}-{n}.png" for s in SCENES for n, v in VARIANTS.items() if v["lifting"] == "contrastive"],
         # object / NVS mIoU against the simulated mask inconsistency (config `robustness`)

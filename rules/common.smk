@@ -279,3 +279,31 @@ LIFT_CONTRASTIVE_ONLY = ("dim", "kernel", "temperature", "temperature_pos", "tem
                          "pixels", "pool_pixels", "init_std", "path", "pca_views", "log_every", "query")
 LIFT_SELF_PROMPT_ONLY = ("prompt_source", "simulate", "sam_checkpoint", "sam_model_type", "sam_device", "points",
                          "max_views", "gaussian_share", "mask_threshold", "min_prompt_pixels")
+
+
+# --- evaluate (rules/evaluate.smk) ------------------------------------------------------------
+def evaluate_params(protocol):
+    def inner(wildcards):
+        merged = json.loads(step_params(wildcards.scene, "evaluate"))
+        merged["protocol"] = protocol
+        if protocol == "official":  # the objects' files come from the standard evaluation (<variant>/objects)
+            merged["object_files"] = False
+        return shlex.quote(json.dumps(merged, sort_keys=True))
+
+    return inner
+
+
+# --- robustness (rules/robustness.smk) -----------------------------------------------------------
+def robustness_spec():
+    runs, merges = [], []
+    consistent = [VARIANTS[n] for n in ROBUSTNESS.get("variants", []) if VARIANTS[n]["consistent_masks"]]
+    for base in ROBUSTNESS.get("scenes", []):
+        for level in ROBUSTNESS.get("levels", []):
+            scene = robustness_scene(base, level)
+            for name in ROBUSTNESS.get("variants", []):
+                runs.append({"scene": base, "level": float(level), "variant": name,
+                             "eval": f"{RESULTS}/{scene}/{name}/eval"})
+            if consistent:
+                merges.append({"scene": base, "level": float(level),
+                               "merge": f"{RESULTS}/{scene}/merge-{consistent[0]['preset']}"})
+    return {"runs": runs, "merges": merges}

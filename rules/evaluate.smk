@@ -2,6 +2,10 @@
 # and the paper-layout tables over all of them (Tables 2, 3, 5). See docs/evaluation.md.
 # The lift folder comes from rules/lift.smk (`{RESULTS}/{scene}/{variant}/lift`).
 # --label: the variant's name and settings, copied into metrics.json (the tables read them back).
+# Two protocols (docs/evaluation.md), both reported: `standard` in <variant>/eval/ (Tables in
+# results/tables/), `official` (as the released code evaluates) in <variant>/eval-official/ (Tables in
+# results/tables/official/). A scene's `evaluate` params apply to both; the protocol is the rule's.
+
 
 rule evaluate:
     input:
@@ -10,9 +14,12 @@ rule evaluate:
         gaussians=lambda w: gaussians_dir(w.scene, variant(w.variant)),
         lift=f"{RESULTS}/{{scene}}/{{variant}}/lift",
     output:
-        directory(f"{RESULTS}/{{scene}}/{{variant}}/eval"),
+        eval=directory(f"{RESULTS}/{{scene}}/{{variant}}/eval"),
+        # every evaluated object's Gaussians as a PLY + a turntable picture (docs/evaluation.md)
+        objects=directory(f"{RESULTS}/{{scene}}/{{variant}}/objects"),
     params:
-        p=quoted_params("evaluate"),
+        p=evaluate_params("standard"),
+        objects=lambda w, output: f"--objects {output.objects}",
         label=lambda w: shlex.quote(json.dumps({"variant": w.variant, **variant(w.variant)}, sort_keys=True)),
         code=code_version("scene.py", "render", "gaussians.py", "evaluation", "lifting", "tracing/git.py"),
     threads: 2
@@ -27,7 +34,22 @@ rule evaluate:
         ENV
     shell:
         "trace3d --threads {threads} evaluate --scene {input.scene} --poses {input.poses} --gaussians {input.gaussians}"
-        " --lift {input.lift} --out {output} --params {params.p} --label {params.label} > {log} 2>&1"
+        " --lift {input.lift} --out {output.eval} {params.objects} --params {params.p} --label {params.label}"
+        " > {log} 2>&1"
+
+
+use rule evaluate as evaluate_official with:
+    output:
+        eval=directory(f"{RESULTS}/{{scene}}/{{variant}}/eval-official"),
+    params:
+        p=evaluate_params("official"),
+        objects="",
+        label=lambda w: shlex.quote(json.dumps({"variant": w.variant, **variant(w.variant)}, sort_keys=True)),
+        code=code_version("scene.py", "render", "gaussians.py", "evaluation", "lifting", "tracing/git.py"),
+    log:
+        f"{RESULTS}/logs/{{scene}}/{{variant}}/evaluate-official.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{scene}}/{{variant}}/evaluate-official.tsv"
 
 
 TABLES = ("table2", "table2_psnr", "table3", "table5")
@@ -60,6 +82,28 @@ rule tables:
         ENV
     shell:
         "trace3d --threads {threads} tables --results {params.results} --out {params.out} --evals {input} > {log} 2>&1"
+
+
+# The same tables under the official protocol (results/tables/official/).
+use rule tables as tables_official with:
+    input:
+        expand(f"{RESULTS}/{{scene}}/{{variant}}/eval-official", scene=EVAL_SCENES, variant=list(VARIANTS)),
+    output:
+        **{
+            t: report(
+                f"{RESULTS}/tables/official/{t}.md",
+                category="Tables (official protocol)",
+                caption=f"../workflow/report/{t}.rst",
+            )
+            for t in TABLES
+        },
+        **{f"{t}_{ext}": f"{RESULTS}/tables/official/{t}.{ext}" for t in TABLES for ext in ("csv", "tex")},
+    params:
+        results=lambda w, output: os.path.dirname(os.path.dirname(os.path.dirname(output.table2))),
+        out=lambda w, output: os.path.dirname(output.table2),
+        code=code_version("report/tables.py"),
+    log:
+        f"{RESULTS}/logs/tables-official.log",
 
 
 # The evaluation figure of every (scene, variant), beside the tables in the report.

@@ -3,21 +3,6 @@
 # room's scene, poses and 2DGS fit: see rules/common.smk). docs/robustness.md.
 
 
-def robustness_spec():
-    runs, merges = [], []
-    consistent = [VARIANTS[n] for n in ROBUSTNESS.get("variants", []) if VARIANTS[n]["consistent_masks"]]
-    for base in ROBUSTNESS.get("scenes", []):
-        for level in ROBUSTNESS.get("levels", []):
-            scene = robustness_scene(base, level)
-            for name in ROBUSTNESS.get("variants", []):
-                runs.append({"scene": base, "level": float(level), "variant": name,
-                             "eval": f"{RESULTS}/{scene}/{name}/eval"})
-            if consistent:
-                merges.append({"scene": base, "level": float(level),
-                               "merge": f"{RESULTS}/{scene}/merge-{consistent[0]['preset']}"})
-    return {"runs": runs, "merges": merges}
-
-
 rule robustness:
     input:
         evals=[r["eval"] for r in robustness_spec()["runs"]],

@@ -300,7 +300,7 @@ def test_evaluate_end_to_end_objects_and_determinism(tiny_lifted, tmp_path):
     args = ["evaluate", "--scene", str(root / "scene"), "--gaussians", str(root / "gaussians"), "--lift",
             str(root / "lift"), "--params", EVAL_PARAMS, "--label", label]
     assert main(args + ["--out", str(tmp_path / "a")]) == 0
-    assert main(args + ["--out", str(tmp_path / "b")]) == 0
+    assert main(args + ["--out", str(tmp_path / "b"), "--objects", str(tmp_path / "b_objects")]) == 0
     a, b = (json.loads((tmp_path / d / "metrics.json").read_text()) for d in ("a", "b"))
     for m in (a, b):
         m.pop("seconds")
@@ -333,6 +333,10 @@ def test_evaluate_end_to_end_objects_and_determinism(tiny_lifted, tmp_path):
     for o in a["objects"]:
         assert (tmp_path / "a" / "objects" / f"{o['id']}.ply").is_file()
         assert (tmp_path / "a" / "objects" / f"{o['id']}.png").is_file()
+        # --objects: the same files in the folder named (the workflow's <variant>/objects), none in the eval folder
+        ply = (tmp_path / "b_objects" / f"{o['id']}.ply").read_bytes()
+        assert ply == (tmp_path / "a" / "objects" / f"{o['id']}.ply").read_bytes()
+    assert not (tmp_path / "b" / "objects").exists()
     assert (tmp_path / "a" / "pictures.png").read_bytes() == (tmp_path / "b" / "pictures.png").read_bytes()
 
 

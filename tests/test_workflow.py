@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -108,12 +109,18 @@ def test_end_to_end_tiny(tmp_path):
         for name in ("full", "no_refine", "raw"):
             assert (tmp_path / "results" / scene / name / "lift" / "features.npy").is_file(), name
             assert (tmp_path / "results" / scene / name / "eval" / "metrics.json").is_file(), name
+            official = json.loads((tmp_path / "results" / scene / name / "eval-official" / "metrics.json").read_text())
+            assert official["protocol"] == "official" and official["params"]["views"] == "all", name
+            assert list((tmp_path / "results" / scene / name / "objects").glob("*.ply")), name
+            assert not (tmp_path / "results" / scene / name / "eval" / "objects").exists()
     tables = tmp_path / "results" / "tables"
     for name in ("table2", "table3", "table5"):
         text = (tables / f"{name}.md").read_text()
         assert "full" in text, (name, text)
         assert (tables / f"{name}.csv").is_file() and (tables / f"{name}.tex").is_file()
     assert "no_refine" in (tables / "table2.md").read_text() and "raw" in (tables / "table3.md").read_text()
+    assert "official" in (tables / "official" / "table2.md").read_text()  # its protocol note
+    assert "standard" in (tables / "table2.md").read_text() and "official" not in (tables / "table2.md").read_text()
     assert (tmp_path / "results" / "plots" / "lift" / "a-full.png").stat().st_size > 1000
     # the robustness level: its own masks and evaluation, the base scene's fit (no scene/poses/gaussians)
     derived = tmp_path / "results" / "a@inc0"

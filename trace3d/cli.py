@@ -7,6 +7,7 @@ that is renamed at the end).  Errors caused by the input are printed as one sent
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -185,9 +186,11 @@ def _cmd_evaluate(args: argparse.Namespace) -> None:
     from .params import load_params_arg
 
     label = _json_arg(args.label, "--label")
-    with atomic_dir(args.out) as tmp:
+    with contextlib.ExitStack() as stack:
+        tmp = stack.enter_context(atomic_dir(args.out))
+        objects = stack.enter_context(atomic_dir(args.objects)) if args.objects else None
         run_evaluate(Path(args.scene), Path(args.poses) if args.poses else None, Path(args.gaussians), Path(args.lift),
-                     tmp, load_params_arg(args.params), label)
+                     tmp, load_params_arg(args.params), label, objects_dir=objects)
 
 
 def _json_arg(text: str | None, flag: str) -> dict:
@@ -375,6 +378,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.add_argument("--params", help=params_help)
     p.add_argument("--label", help="JSON mapping copied into metrics.json as \"variant\" (name and settings)")
+    p.add_argument("--objects", help="folder for the objects' PLY + turntable files (default: <out>/objects)")
     p.set_defaults(func=_cmd_evaluate)
 
     p = sub.add_parser("tables", help="paper-layout Tables 2, 3 and 5 from results/<scene>/<variant>/eval/metrics.json")

@@ -6,7 +6,7 @@ Writes into ``out_dir``:
                      settings, the lifting's lift.json and the variant label given by the rule
     pictures.png     a few objects: reference view + query, the object rendered alone beside the
                      ground truth, the novel-view mask coloured TP / FP / FN
-    objects/<id>.ply the object's Gaussians (standard 3DGS/2DGS PLY layout; ``GaussianModel.read_ply``)
+    objects/<id>.ply the object's Gaussians (the workflow puts objects/ beside eval/: --objects) (standard 3DGS/2DGS PLY layout; ``GaussianModel.read_ply``)
     objects/<id>.png the object alone from ``turntable_views`` directions
 
 Scene means weigh every object equally: an object's score is the mean over its scored views, the
@@ -72,8 +72,9 @@ def _picture_choice(objects: list[dict], count: int) -> list[int]:
 
 
 def run_evaluate(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Path, lift_dir: Path, out_dir: Path,
-                 params: dict, label: dict | None = None) -> dict:
-    """Evaluate the lifted scene of ``lift_dir`` (over ``gaussians_dir``) on the scene's ground truth."""
+                 params: dict, label: dict | None = None, objects_dir: Path | None = None) -> dict:
+    """Evaluate the lifted scene of ``lift_dir`` (over ``gaussians_dir``) on the scene's ground truth;
+    the object files go to ``objects_dir`` (default ``out_dir/objects``)."""
     from ..lifting import load_lifted
     from ..tracing.git import load_fitted
 
@@ -90,8 +91,9 @@ def run_evaluate(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Path, l
     gt = GroundTruth(scene, cameras, p)
     by_name = {c.name: c for c in cameras}
     out_dir = Path(out_dir)
+    objects_dir = Path(objects_dir) if objects_dir is not None else out_dir / "objects"
     if p.object_files:
-        (out_dir / "objects").mkdir(parents=True, exist_ok=True)
+        objects_dir.mkdir(parents=True, exist_ok=True)
     up = world_up(train)
     images: dict[str, np.ndarray] = {}
 
@@ -134,8 +136,8 @@ def run_evaluate(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Path, l
                             "reason": f"no scored view ({p.views} views, >= {p.min_pixels} px, not occluded)"})
         obj_model = model.subset(torch.from_numpy(keep))
         if p.object_files:
-            obj_model.write_ply(out_dir / "objects" / f"{oid}.ply")
-            write_turntable(out_dir / "objects" / f"{oid}.png", obj_model, up, p.turntable_views, p.turntable_size,
+            obj_model.write_ply(objects_dir / f"{oid}.ply")
+            write_turntable(objects_dir / f"{oid}.png", obj_model, up, p.turntable_views, p.turntable_size,
                             p.near)
         # the picture view: the scored extraction view (else NVS view) with the most ground-truth pixels
         frames = ext_frames or nvs_frames
