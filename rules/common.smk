@@ -31,6 +31,24 @@ os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(workflow.basedir) / ".numba_ca
 COMMON_CODE = ("cli.py", "io.py", "params.py", "errors.py", "threads.py", "__init__.py")
 
 
+# Scenes read from a data set need their folder before any job starts: one sentence, not a failed job.
+def _check_sources():
+    root = config.get("data_root", ".")
+    for name, cfg in config["scenes"].items():
+        if cfg["kind"] == "synthetic":
+            continue
+        source = os.path.normpath(os.path.join(root, cfg["source"]))
+        if not os.path.isdir(root):
+            raise ValueError(f"config data_root: {root} does not exist; set data_root to the folder that holds "
+                             f"the data set (scene '{name}' reads its {cfg['kind']} data from it, docs/datasets.md).")
+        if not os.path.exists(source):
+            raise ValueError(f"config scenes.{name}.source: {source} does not exist (data_root {root} + source "
+                             f"{cfg['source']}); docs/datasets.md shows the expected layout.")
+
+
+_check_sources()
+
+
 def deep_merge(base, override):
     """Mapping ``override`` merged over ``base`` key by key (nested mappings merged too)."""
     out = dict(base)

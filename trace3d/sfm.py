@@ -299,10 +299,20 @@ def _triangulate_known_poses(scene: Scene, p: PosesParams):
         out = Path(work) / "triangulated"
         out.mkdir()
         options = _mapping_options(p, len(scene.cameras))
-        rec = pycolmap.triangulate_points(
-            rec, str(database), str(scene.root / "images"), str(out), clear_points=True, options=options,
-            refine_intrinsics=False,
-        )  # fmt: skip
+        if num_verified_pairs == 0:  # COLMAP refuses to triangulate without one verified pair
+            log.warning("poses (dataset): no verified image pair in %s; no points to triangulate", scene.root)
+        else:
+            try:
+                rec = pycolmap.triangulate_points(
+                    rec, str(database), str(scene.root / "images"), str(out), clear_points=True, options=options,
+                    refine_intrinsics=False,
+                )  # fmt: skip
+            except ValueError as exc:  # a failed COLMAP check: the points are optional, the poses are the scene's
+                log.warning("poses (dataset): COLMAP triangulation with the scene's poses failed (%s); "
+                            "continuing without points", str(exc).strip().splitlines()[-1])
+                rec = pycolmap.Reconstruction(rec)
+                for pid in list(rec.points3D):
+                    rec.delete_point3D(pid)
         timings["triangulate_s"] = time.perf_counter() - t0
     stats = {
         "num_verified_pairs": num_verified_pairs,
