@@ -39,6 +39,7 @@ rule reproduce:
         expand(f"{RESULTS}/{{scene}}/{{variant}}/lift", scene=SCENES, variant=list(VARIANTS)),
         rules.tables.output if EVAL_SCENES else [],
         rules.tables_official.output if EVAL_SCENES else [],
+        rules.tables_nvos.output if NVOS_SCENES else [],
         expand(f"{RESULTS}/plots/evaluation/{{scene}}-{{variant}}.png", scene=EVAL_SCENES, variant=list(VARIANTS)),
         [f"{RESULTS}/plots/lift/{s}-{n}.png" for s in SCENES for n, v in VARIANTS.items() if v["lifting"] == "contrastive"],
         # object / NVS mIoU against the simulated mask inconsistency (config `robustness`)

@@ -14,9 +14,11 @@ validate(config, schema="../workflow/schemas/config.schema.yaml")
 RESULTS = config.get("results", "results")
 SCENES = sorted(config["scenes"])
 # Scenes whose importer writes ground-truth instance maps and objects: the evaluate step scores them.
-# (NVOS's target-view masks need their own protocol; a user's photos have no ground truth.)
+# (NVOS's target-view masks have their own protocol, below; a user's photos have no ground truth.)
 EVAL_KINDS = ("synthetic", "replica")
 EVAL_SCENES = [s for s in SCENES if config["scenes"][s]["kind"] in EVAL_KINDS]
+# NVOS scenes: scribbles on a reference view -> the target view's mask (rule evaluate_nvos, Table 4).
+NVOS_SCENES = [s for s in SCENES if config["scenes"][s]["kind"] == "nvos"]
 ENV = "../workflow/envs/trace3d.yaml"
 PACKAGE = Path(workflow.basedir) / "trace3d"
 

@@ -52,6 +52,37 @@ use rule evaluate as evaluate_official with:
         f"{RESULTS}/benchmarks/{{scene}}/{{variant}}/evaluate-official.tsv"
 
 
+# NVOS (paper Table 4): the scribbles select instances of the variant's reference-view map; the lifted
+# query gives the target view's mask (docs/evaluation.md, NVOS).
+rule evaluate_nvos:
+    input:
+        scene=base_folder("scene"),
+        poses=base_folder("poses"),
+        gaussians=lambda w: gaussians_dir(w.scene, variant(w.variant)),
+        lift=f"{RESULTS}/{{scene}}/{{variant}}/lift",
+        labels=lift_labels,
+    output:
+        directory(f"{RESULTS}/{{scene}}/{{variant}}/eval-nvos"),
+    params:
+        labels=lift_labels_arg,
+        label=lambda w: shlex.quote(json.dumps({"variant": w.variant, **variant(w.variant)}, sort_keys=True)),
+        code=code_version("scene.py", "render", "gaussians.py", "evaluation", "lifting", "tracing/git.py"),
+    threads: 2
+    resources:
+        mem_mb=3000,
+        runtime=30,
+    log:
+        f"{RESULTS}/logs/{{scene}}/{{variant}}/evaluate-nvos.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{scene}}/{{variant}}/evaluate-nvos.tsv"
+    conda:
+        ENV
+    shell:
+        "trace3d --threads {threads} evaluate-nvos --scene {input.scene} --poses {input.poses}"
+        " --gaussians {input.gaussians} --lift {input.lift} --labels {params.labels} --out {output}"
+        " --label {params.label} > {log} 2>&1"
+
+
 TABLES = ("table2", "table2_psnr", "table3", "table5")
 
 
@@ -82,6 +113,26 @@ rule tables:
         ENV
     shell:
         "trace3d --threads {threads} tables --results {params.results} --out {params.out} --evals {input} > {log} 2>&1"
+
+
+# Table 4 from the NVOS scenes (results/tables/table4.*).
+use rule tables as tables_nvos with:
+    input:
+        expand(f"{RESULTS}/{{scene}}/{{variant}}/eval-nvos", scene=NVOS_SCENES, variant=list(VARIANTS)),
+    output:
+        table4=report(
+            f"{RESULTS}/tables/table4.md",
+            category="Tables",
+            caption="../workflow/report/table4.rst",
+        ),
+        table4_csv=f"{RESULTS}/tables/table4.csv",
+        table4_tex=f"{RESULTS}/tables/table4.tex",
+    params:
+        results=lambda w, output: os.path.dirname(os.path.dirname(output.table4)),
+        out=lambda w, output: os.path.dirname(output.table4),
+        code=code_version("report/tables.py"),
+    log:
+        f"{RESULTS}/logs/tables-nvos.log",
 
 
 # The same tables under the official protocol (results/tables/official/).

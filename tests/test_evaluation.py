@@ -409,3 +409,28 @@ def test_official_protocol_scores_all_views_with_precision(tiny_lifted, tmp_path
             occluded = next(g for g in o["ground_truth_views"] if g["frame"] == v["frame"])["occluded_fraction"]
             assert occluded is None or occluded <= 0.05
     assert not (tmp_path / "o" / "objects").exists()
+
+
+def test_nvos_scribbles_select_instances_and_scores_are_hand_counted():
+    from trace3d.evaluation.nvos import mask_scores, scribble_mask
+
+    labels = np.zeros((6, 8), np.int64)
+    labels[1:4, 1:4] = 3  # the object, in two instances
+    labels[4:6, 1:4] = 5
+    labels[:, 5:] = 7  # a neighbour that a negative stroke crosses
+    pos = np.array([[2.5, 2.2], [1.1, 4.9], [6.0, 1.0]])  # (x, y): instance 3, instance 5, and 7
+    neg = np.array([[6.5, 3.0], [0.2, 0.2]])  # instance 7, and unlabelled
+    mask, chosen = scribble_mask(labels, pos, neg)
+    assert chosen == [3, 5] and mask.sum() == 15
+    # every hit instance also negative: the one with more positive than negative hits
+    mask, chosen = scribble_mask(labels, np.array([[6.0, 1.0], [6.0, 2.0]]), np.array([[7.0, 0.0]]))
+    assert chosen == [7]
+    mask, chosen = scribble_mask(labels, np.array([[0.0, 0.0]]), neg)  # only unlabelled pixels hit
+    assert chosen == [] and not mask.any()
+    pred = np.zeros((4, 5), bool)
+    truth = np.zeros((4, 5), bool)
+    pred[0, :3] = True  # 3 predicted
+    truth[0, 1:4] = True  # 3 true, 2 shared
+    s = mask_scores(pred, truth)
+    assert (s["tp"], s["fp"], s["fn"], s["tn"]) == (2, 1, 1, 16)
+    assert s["iou"] == pytest.approx(0.5) and s["accuracy"] == pytest.approx(18 / 20)

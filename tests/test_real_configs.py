@@ -87,10 +87,10 @@ def test_missing_scene_folder_is_named(tmp_path):
 
 
 @pytest.mark.slow
-def test_nvos_config_runs_through_lifting(tmp_path):
+def test_nvos_config_runs_the_whole_dag(tmp_path):
     """NVOS as shipped asks SAM for masks; here the fixture's masks come as files (the sphere and the
     wall per view), the rest of the config unchanged: import, poses from poses_bounds.npy, fit, trace,
-    merge, refine, lift. (NVOS's own evaluation, scribbles -> target-view mask, is not built yet.)"""
+    merge, refine, lift, the NVOS evaluation (scribbles -> target-view mask) and Table 4."""
     data = tmp_path / "nvos"
     poses = write_llff_scene(data / "fern", FERN_NAMES)
     write_nvos_labels(data / "labels" / "llff", "fern", poses[0], poses[-1])
@@ -108,3 +108,10 @@ def test_nvos_config_runs_through_lifting(tmp_path):
     for step in ("poses", "masks", "patches", "gaussians", "trace-paper", "merge-paper", "refine-paper-merged"):
         assert (root / step).is_dir(), step
     assert (root / "full" / "lift" / "features.npy").is_file()
+    metrics = json.loads((root / "full" / "eval-nvos" / "metrics.json").read_text())
+    assert metrics["protocol"] == "nvos" and metrics["target"] == "IMG_4027" and metrics["reference"] == "IMG_4038"
+    assert metrics["reference_instances"]  # the positive scribbles select the sphere's instance
+    assert 0.0 <= metrics["nvs"]["mIoU"] <= 1.0 and metrics["nvs"]["mAcc"] > 0.5
+    table = pd.read_csv(tmp_path / "results" / "tables" / "table4.csv")
+    assert list(table["method"]) == ["full"] and "fern" in " ".join(table.columns)
+    assert not (tmp_path / "results" / "tables" / "table2.md").exists()

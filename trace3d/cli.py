@@ -193,6 +193,16 @@ def _cmd_evaluate(args: argparse.Namespace) -> None:
                      tmp, load_params_arg(args.params), label, objects_dir=objects)
 
 
+def _cmd_evaluate_nvos(args: argparse.Namespace) -> None:
+    from .evaluation.nvos import run_evaluate_nvos
+    from .io import atomic_dir
+
+    label = _json_arg(args.label, "--label")
+    with atomic_dir(args.out) as tmp:
+        run_evaluate_nvos(Path(args.scene), Path(args.poses) if args.poses else None, Path(args.gaussians),
+                          Path(args.lift), Path(args.labels), tmp, label)
+
+
 def _json_arg(text: str | None, flag: str) -> dict:
     if not text:
         return {}
@@ -380,6 +390,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--label", help="JSON mapping copied into metrics.json as \"variant\" (name and settings)")
     p.add_argument("--objects", help="folder for the objects' PLY + turntable files (default: <out>/objects)")
     p.set_defaults(func=_cmd_evaluate)
+
+    p = sub.add_parser("evaluate-nvos", help="NVOS (Table 4): scribbles on the reference view -> the target view's mask")
+    p.add_argument("--scene", required=True, help="an NVOS scene folder (trace3d scene nvos)")
+    p.add_argument("--poses", help="poses folder whose cameras the fitted scene lives with")
+    p.add_argument("--gaussians", required=True, help="the Gaussians the lifting used (point_cloud.ply)")
+    p.add_argument("--lift", required=True, help="lift step folder")
+    p.add_argument("--labels", required=True, help="the instance maps the lifting used (the scribbles select instances there)")
+    p.add_argument("--out", required=True)
+    p.add_argument("--label", help="JSON mapping copied into metrics.json as \"variant\" (name and settings)")
+    p.set_defaults(func=_cmd_evaluate_nvos)
 
     p = sub.add_parser("tables", help="paper-layout Tables 2, 3 and 5 from results/<scene>/<variant>/eval/metrics.json")
     p.add_argument("--results", required=True, help="results folder")

@@ -236,6 +236,13 @@ def build_tables(results: Path, evals: list[Path] | None = None) -> list[Table]:
     t2p = _per_scene_table("table2_psnr", "3D object extraction: PSNR (dB) per scene inside the ground-truth "
                            "box grown by 10 px (the supplementary's PSNR table)", scenes, rows, "psnr",
                            [("PSNR", "psnr", 1.0)])
+    if all(r.protocols == {"nvos"} for r in rows):  # NVOS: one target mask per scene, Table 4 only
+        return [_per_scene_table("table4", "NVOS (paper Table 4): target-view mIoU (%) per scene from the "
+                                 "reference view's scribbles, mean ± std over scenes of mIoU and mAcc (%)", scenes,
+                                 rows, "nvs_miou", [("mIoU", "nvs_miou", 100.0), ("mAcc", "nvs_macc", 100.0)])]
+    if any("nvos" in r.protocols for r in rows):
+        raise Trace3DError(f"{results}: NVOS evaluations (Table 4) and Replica / synthetic ones (Tables 2, 3, 5) "
+                           f"cannot share one set of tables; pass them separately.")
     t3 = _per_scene_table("table3", "Novel-view 2D segmentation (paper Table 3): mIoU (%) per scene, "
                           "mean ± std over scenes of mIoU and mAcc (%)", scenes, rows, "nvs_miou",
                           [("mIoU", "nvs_miou", 100.0), ("mAcc", "nvs_macc", 100.0)])
