@@ -458,3 +458,22 @@ def test_run_gaussians_divergence_keeps_checkpoint_beside_output(tmp_path):
     kept = GaussianModel.read_ply(failed / "checkpoint_last_good.ply")
     assert kept.is_finite() and len(kept) == 300
     assert json.loads((failed / "failure.json").read_text())["iteration"] >= 2
+
+
+def test_bench_fit_phases_add_up_and_instrumentation_is_removed(tmp_path):
+    """`trace3d bench fit` measures the real loop by wrapping what it calls; the wrappers go away after."""
+    import torch
+
+    from trace3d.render import core, kernels
+    from trace3d.training import bench, loop
+
+    before = (torch.Tensor.backward, core.project, kernels.forward_kernel, loop.render_view, kernels.Binning.__init__)
+    out = bench.bench_size((32, 24), gaussians=400, iterations=4, warmup=1, views=4, root=tmp_path)
+    after = (torch.Tensor.backward, core.project, kernels.forward_kernel, loop.render_view, kernels.Binning.__init__)
+    assert before == after
+    phases = out["phases_ms"]
+    assert set(phases) == set(bench.PHASES)
+    assert sum(phases.values()) == pytest.approx(out["ms_per_iteration"])
+    for name in ("projection", "forward_kernel", "backward_kernel", "loss", "optimizer"):
+        assert phases[name] > 0, name
+    assert 0 < out["kernel_share"] < 1 and out["gaussians_start"] == 400

@@ -251,6 +251,10 @@ def _cmd_bench(args: argparse.Namespace) -> None:
         from .datasets.synthetic.bench import run_bench
 
         result = run_bench(quick=args.quick)
+    elif args.name == "fit":
+        from .training.bench import run_bench
+
+        result = run_bench(quick=args.quick)
     elif args.name == "trace":
         from .tracing.bench import run_bench
 
@@ -444,7 +448,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_tracing_table)
 
     p = sub.add_parser("bench", help="benchmarks; print one JSON object")
-    p.add_argument("name", choices=["render", "synthetic", "trace", "lift", "lift-forms"])
+    p.add_argument("name", choices=["render", "synthetic", "trace", "lift", "lift-forms", "fit"])
     p.add_argument("--room", default="results/room0",
                    help="trace, lift: a fitted room's results folder (scene/, poses/, gaussians/, patches/ or "
                         "merge-paper/instances)")

@@ -1,0 +1,169 @@
+"""``trace3d bench fit``: where a 2DGS training iteration spends its time, phase by phase.
+
+For each frame size (a default room's 160x120 and an LLFF-sized 504x378) a synthetic room is generated
+at that size, 80,000 Gaussians are initialised on its depth (surface-aligned disks, as a fit has
+them), and the real training loop (:func:`trace3d.training.loop.fit`, default parameters) runs for a
+warm-up and then ``iterations`` timed iterations from the default schedule's densification window
+(``densify_from`` moved to the start, so that density control runs at its default interval and is
+amortised as in a fit). The phases are measured by wrapping the functions the loop calls, so the
+loop itself is the one the pipeline runs:
+
+- ``projection``: :func:`trace3d.render.projection.project` (ray transforms, footprint boxes);
+- ``binning``: tile binning of the footprint boxes (``Binning``);
+- ``forward_kernel`` / ``backward_kernel``: the numba tile kernels;
+- ``render_glue``: the rest of the render (SH colours, packing, conversions);
+- ``loss``: L1 + D-SSIM and the regularisers (normal consistency, depth distortion terms);
+- ``autograd_rest``: ``loss.backward()`` minus the backward kernel (projection and SH backward, loss
+  backward, conversions);
+- ``optimizer``: the Adam step; ``density_control``: the strategy's hooks (amortised);
+- ``other``: the iteration's remainder (sampling, logging, checks).
+
+Reports ms per iteration for each, ``kernel_share`` = (forward + backward kernel) / iteration and
+``iterations_per_s``. Wall-clock, so the machine's load counts: note it beside any figure.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+log = logging.getLogger(__name__)
+
+PHASES = ("projection", "binning", "forward_kernel", "render_glue", "loss", "backward_kernel", "autograd_rest",
+          "optimizer", "density_control", "other")
+
+
+class _Clock:
+    def __init__(self):
+        self.seconds = {k: 0.0 for k in ("projection", "binning", "forward_kernel", "render", "loss",
+                                         "backward_kernel", "backward", "optimizer", "density_control")}
+        self.on = False
+
+    def wrap(self, key, fn):
+        def inner(*args, **kwargs):
+            if not self.on:
+                return fn(*args, **kwargs)
+            start = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.seconds[key] += time.perf_counter() - start
+
+        return inner
+
+
+@contextlib.contextmanager
+def _instrumented(clock: _Clock):
+    """Wrap the functions the training loop calls (restored afterwards)."""
+    from ..render import core, kernels
+    from . import loop, optimizer, strategy
+
+    patches = [
+        (core, "project", "projection"), (kernels, "forward_kernel", "forward_kernel"),
+        (kernels, "backward_kernel", "backward_kernel"), (loop, "render_view", "render"),
+        (loop, "photometric_loss", "loss"), (loop, "normal_consistency_loss", "loss"),
+        (loop, "depth_to_normal", "loss"), (optimizer.GaussianOptimizer, "step", "optimizer"),
+        (strategy.DefaultStrategy, "after_backward", "density_control"),
+        (strategy.DefaultStrategy, "after_step", "density_control"),
+        (torch.Tensor, "backward", "backward"),
+    ]
+    saved = [(obj, name, getattr(obj, name)) for obj, name, _ in patches]
+    binning_init = kernels.Binning.__init__
+    try:
+        for obj, name, key in patches:
+            setattr(obj, name, clock.wrap(key, getattr(obj, name)))
+        kernels.Binning.__init__ = clock.wrap("binning", binning_init)
+        yield
+    finally:
+        for obj, name, fn in saved:
+            setattr(obj, name, fn)
+        kernels.Binning.__init__ = binning_init
+
+
+def _room(size: tuple[int, int], root: Path, views: int):
+    from ..datasets import synthetic
+    from ..scene import Scene
+
+    out = root / f"room_{size[0]}x{size[1]}"
+    synthetic.generate_scene(out, synthetic.params_from({"width": size[0], "height": size[1], "num_views": views,
+                                                          "seed": 0}))
+    return Scene.read(out)
+
+
+def bench_size(size: tuple[int, int], gaussians: int, iterations: int, warmup: int, views: int, root: Path) -> dict:
+    from ..gaussians import init_from_depth
+    from ..params import from_mapping
+    from .loop import fit, scene_extent
+    from .params import TrainParams
+    from .step import load_images
+
+    scene = _room(size, root, views)
+    train = list(scene.train_cameras)
+    images = load_images(scene, train)
+    base = TrainParams()
+    model = init_from_depth(scene, train, stride=1, max_points=gaussians, sh_degree=base.sh_degree,
+                            opacity=base.init_opacity, seed=0)
+    total = warmup + iterations
+    # the default schedule from its densification window on: normal and distortion terms on, density
+    # control at its default interval
+    params = from_mapping(TrainParams, {"iterations": total, "schedule_scale": 1.0, "densify_from": 0,
+                                        "densify_until": total + 1, "normal_from": 0, "distortion_from": 0,
+                                        "initial_sh_degree": base.sh_degree, "log_interval": total,
+                                        "checkpoint_interval": total}, "bench params")
+    clock = _Clock()
+    # warm-up (numba compile, caches) outside the clock, then the timed iterations
+    warm = from_mapping(TrainParams, {**{k: getattr(params, k) for k in ("schedule_scale", "normal_from",
+                                                                         "distortion_from", "initial_sh_degree")},
+                                      "iterations": warmup, "densify_from": warmup + 1, "densify_until": warmup + 2,
+                                      "log_interval": warmup, "checkpoint_interval": warmup}, "bench params")
+    fit(model.detached_copy(), train, images, warm, extent=scene_extent(train), progress=False)
+    with _instrumented(clock):
+        clock.on = True
+        start = time.perf_counter()
+        result = fit(model.detached_copy(), train, images, params, extent=scene_extent(train), progress=False)
+        wall = time.perf_counter() - start
+        clock.on = False
+    per = {k: 1000.0 * v / total for k, v in clock.seconds.items()}
+    it_ms = 1000.0 * wall / total
+    phases = {
+        "projection": per["projection"],
+        "binning": per["binning"],
+        "forward_kernel": per["forward_kernel"],
+        "render_glue": per["render"] - per["projection"] - per["binning"] - per["forward_kernel"],
+        "loss": per["loss"],
+        "backward_kernel": per["backward_kernel"],
+        "autograd_rest": per["backward"] - per["backward_kernel"],
+        "optimizer": per["optimizer"],
+        "density_control": per["density_control"],
+    }
+    phases["other"] = it_ms - sum(phases.values())
+    return {
+        "width": size[0], "height": size[1], "views": len(train), "gaussians_start": len(model),
+        "gaussians_end": len(result.model), "iterations": total, "wall_s": wall,
+        "ms_per_iteration": it_ms, "iterations_per_s": 1000.0 / it_ms, "phases_ms": phases,
+        "kernel_share": (phases["forward_kernel"] + phases["backward_kernel"]) / it_ms,
+    }
+
+
+def run_bench(quick: bool = False) -> dict:
+    """The phase table for both sizes (``quick``: fewer Gaussians and iterations, a smoke run)."""
+    import numba
+
+    gaussians = 5000 if quick else 80_000
+    iterations, warmup = (10, 3) if quick else (200, 10)
+    views = 6 if quick else 24
+    sizes = [(160, 120), (504, 378)]
+    out = {"torch_threads": torch.get_num_threads(), "numba_threads": numba.get_num_threads(),
+           "gaussians": gaussians, "quick": quick, "sizes": {}}
+    with tempfile.TemporaryDirectory(prefix="trace3d-bench-fit-") as tmp:
+        for size in sizes:
+            log.info("bench fit: %dx%d, %d Gaussians, %d iterations", size[0], size[1], gaussians, iterations)
+            out["sizes"][f"{size[0]}x{size[1]}"] = bench_size(size, gaussians, iterations, warmup, views, Path(tmp))
+    out["load_average"] = [round(x, 2) for x in os.getloadavg()]
+    return out
