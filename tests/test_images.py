@@ -223,6 +223,7 @@ def test_readme_config_example_dry_runs(tmp_path):
     config = yaml.safe_load(re.search(r"```yaml\n(.*?)```", section, flags=re.S).group(1))
     assert config["scenes"]["plant"]["kind"] == "images"
     config["data_root"] = str(tmp_path / "captures")
+    (tmp_path / "captures" / config["scenes"]["plant"]["source"]).mkdir(parents=True)  # the photos' folder exists
     config["results"] = str(tmp_path / "results")
     (tmp_path / "my.yaml").write_text(yaml.safe_dump(config))
     env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
