@@ -296,7 +296,7 @@ def lift_params(wildcards):
 
 LIFT_LABELS_KEYS = ("min_confidence", "near")
 LIFT_CONTRASTIVE_ONLY = ("dim", "kernel", "temperature", "temperature_pos", "temperature_neg", "lr", "iterations",
-                         "pixels", "pool_pixels", "init_std", "path", "pca_views", "log_every", "query")
+                         "pixels", "pool_pixels", "init_std", "path", "fused", "pca_views", "log_every", "query")
 LIFT_SELF_PROMPT_ONLY = ("prompt_source", "simulate", "sam_checkpoint", "sam_model_type", "sam_device", "points",
                          "max_views", "gaussian_share", "mask_threshold", "min_prompt_pixels")
 

@@ -17,6 +17,7 @@ from trace3d.errors import ConfigError, Trace3DError
 from trace3d.lifting import ObjectQuery, load_lifted
 from trace3d.lifting.contrastive import (ContrastiveParams, ContrastiveTrainer, contrastive_loss,
                                          contrastive_loss_reference)
+from trace3d.lifting.loss_kernel import fused_contrastive_loss
 from trace3d.lifting.query import FeatureLifted, QueryParams, find_query_points, iou, trace_object
 from trace3d.render import render
 from trace3d.render.pixel_weights import pixel_weights
@@ -65,6 +66,16 @@ def test_pixel_weights_match_rasterizer_values_and_gradients(subset):
         torch.testing.assert_close(sparse, ref, rtol=1e-5, atol=1e-6)
         part = weights.rows(np.array([5, 0, 17]))
         torch.testing.assert_close(part.render(features), sparse[[5, 0, 17]])
+        # the gathered rows (numba) against the CSR product's rows, values and gradients
+        which = np.array([7, 2, 250, 3])
+        gathered = weights.render_rows(features, which)
+        torch.testing.assert_close(gathered, sparse[torch.from_numpy(which)], rtol=1e-6, atol=1e-6)
+        up = torch.randn_like(gathered)
+        (g_rows,) = torch.autograd.grad((gathered * up).sum(), features)
+        (g_full,) = torch.autograd.grad((weights.render(features)[torch.from_numpy(which)] * up).sum(), features)
+        torch.testing.assert_close(g_rows, g_full, rtol=1e-5, atol=1e-7)
+        with pytest.raises(Trace3DError, match="rows must lie in"):
+            weights.render_rows(features, np.array([300]))
 
 
 def test_pixel_weights_refuse_bad_pixels():
@@ -94,6 +105,49 @@ def test_loss_matches_its_reference(kernel):
     torch.testing.assert_close(g_fast, g_slow)
 
 
+@pytest.mark.parametrize("kernel", ["official", "gaussian", "printed"])
+def test_fused_loss_kernel_matches_its_twins(kernel):
+    """The fused numba loss + gradient against the torch form (float32) and the float64 reference: random
+    features with instances of very different sizes, a singleton instance, features far apart (where the
+    official kernel's negatives vanish) and exact duplicates."""
+    gen = torch.Generator().manual_seed(3)
+    feats = torch.randn(300, 16, generator=gen) * 0.7
+    feats[:40] *= 8.0  # far apart: exp(-d2) of the negatives underflows towards 0, not to exp(-20)
+    feats[41] = feats[40]  # a zero distance between different pixels
+    labels = torch.randint(1, 6, (300,), generator=gen)
+    labels[7] = 99  # an instance of one pixel
+    kw = {"kernel": kernel, "temperature": 0.5 if kernel == "gaussian" else 0.01, "temperature_pos": 10.0,
+          "temperature_neg": 1.0}
+    f32 = feats.clone().requires_grad_(True)
+    fused = fused_contrastive_loss(f32, labels, **kw)
+    (g_fused,) = torch.autograd.grad(fused * 3.0, f32)  # the upstream gradient scales the saved one
+    f64 = feats.double().requires_grad_(True)
+    ref = contrastive_loss(f64, labels, **kw)
+    (g_ref,) = torch.autograd.grad(ref * 3.0, f64)
+    assert float(fused.detach()) == pytest.approx(float(ref.detach()), rel=2e-6, abs=1e-7)
+    assert g_ref.abs().max() > 0
+    torch.testing.assert_close(g_fused.double(), g_ref, rtol=1e-3, atol=1e-4 * float(g_ref.abs().max()))
+    slow = contrastive_loss_reference(f64[:60], labels[:60], **kw)  # the per-anchor loop on a subset
+    assert float(fused_contrastive_loss(feats[:60], labels[:60], **kw)) == pytest.approx(float(slow), rel=2e-6)
+    # without a gradient asked for, the same value
+    assert float(fused_contrastive_loss(feats, labels, **kw)) == float(fused.detach())
+
+
+def test_fused_loss_kernel_does_not_depend_on_the_thread_count():
+    import numba
+
+    gen = torch.Generator().manual_seed(4)
+    feats = torch.randn(257, 16, generator=gen, requires_grad=True)
+    labels = torch.randint(1, 9, (257,), generator=gen)
+    out = []
+    for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
+        numba.set_num_threads(threads)
+        loss = fused_contrastive_loss(feats, labels, kernel="printed")
+        (g,) = torch.autograd.grad(loss, feats)
+        out.append((float(loss), g))
+    assert out[0][0] == out[1][0] and torch.equal(out[0][1], out[1][1])
+
+
 def test_loss_pulls_positives_and_pushes_negatives():
     feats = torch.tensor([[0.0, 0.0], [0.5, 0.0], [1.0, 0.0], [1.5, 0.0]], requires_grad=True)
     labels = torch.tensor([1, 1, 2, 2])
@@ -119,22 +173,25 @@ def label_maps_of(cameras):
     return out
 
 
-def test_loss_and_gradient_agree_through_both_paths():
+@pytest.mark.parametrize("fused", [True, False])
+def test_loss_and_gradient_agree_through_both_paths(fused):
+    """Sparse rows + (fused | torch) loss against the rasterizer + the torch loss."""
     model, cameras = tilted_scene()
-    params = ContrastiveParams(pixels=200, pool_pixels=400, iterations=1)
+    params = ContrastiveParams(pixels=200, pool_pixels=400, iterations=1, fused=fused)
     trainer = ContrastiveTrainer(model, cameras, label_maps_of(cameras), params)
     for _ in range(2):
         v, rows = trainer.sample()
         grads = []
         values = []
         for path in ("sparse", "raster"):
+            trainer.params.fused = fused if path == "sparse" else False
             trainer.features.grad = None
             loss = trainer.loss_at(v, rows, path)
             loss.backward()
             values.append(float(loss.detach()))
             grads.append(trainer.features.grad.clone())
         assert values[0] == pytest.approx(values[1], rel=1e-5)
-        torch.testing.assert_close(grads[0], grads[1], rtol=1e-4, atol=1e-7)
+        torch.testing.assert_close(grads[0], grads[1], rtol=1e-3 if fused else 1e-4, atol=1e-7)
         assert grads[0].abs().sum() > 0
 
 

@@ -22,7 +22,10 @@ pixels: at the printed lr 1e-5 the loss does not move in 1,500 iterations on a d
 
 Speed: the renders of the sampled pixels are sparse products with per-view blending weights computed
 once (:mod:`trace3d.render.pixel_weights`), for a pool of ``pool_pixels`` random labelled pixels per
-view; ``path: raster`` renders with the rasterizer instead (the twin, and the benchmark's baseline).
+view, of which each iteration gathers only its sampled rows; ``path: raster`` renders with the
+rasterizer instead (the twin, and the benchmark's baseline). The loss and its gradient come from one
+fused numba kernel (:mod:`trace3d.lifting.loss_kernel`); ``fused: false`` uses the torch autograd form
+(:func:`contrastive_loss`, its twin).
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ from tqdm import tqdm
 from ..errors import Trace3DError
 from ..gaussians import GaussianModel
 from ..scene import Camera
+from .loss_kernel import fused_contrastive_loss
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +77,7 @@ class ContrastiveParams:
     pool_pixels: int = 8192  # labelled pixels per view whose blending weights are kept (sparse path)
     init_std: float = 0.1
     path: Literal["sparse", "raster"] = "sparse"
+    fused: bool = True  # the fused CPU loss + gradient kernel (False: the torch autograd form, its twin)
     near: float = 0.01
     seed: int = 0
     pca_views: int = 3
@@ -247,11 +252,12 @@ class ContrastiveTrainer:
     def loss_at(self, v: int, rows: np.ndarray, path: str | None = None) -> Tensor:
         path = path or self.params.path
         if path == "sparse":
-            rendered = self.pools.weights[v].render(self.features)[torch.from_numpy(rows)]
+            rendered = self.pools.weights[v].render_rows(self.features, rows)
         else:
             rendered = render_pixels(self.model, self.pools.cameras[v], self.features, self.pools.pixels[v][rows],
                                      self.params.near)
-        return contrastive_loss(rendered, self.pools.labels[v][torch.from_numpy(rows)], **self.kwargs)
+        loss = fused_contrastive_loss if self.params.fused else contrastive_loss
+        return loss(rendered, self.pools.labels[v][torch.from_numpy(rows)], **self.kwargs)
 
     def step(self, path: str | None = None) -> float:
         v, rows = self.sample()
