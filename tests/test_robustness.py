@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import pandas as pd
 import pytest
@@ -50,6 +51,7 @@ def test_table_is_the_mean_over_rooms_per_level_and_variant(tmp_path, spec):
     text = (tmp_path / "out" / "robustness.md").read_text()
     assert "| full" not in text.split("## Object mIoU")[0]  # variants are columns of the level rows
     assert "70.0" in text and "40.0" in text and "r1, r2" in text
+    assert re.search(r"\|\s+1\s+\|\s+30\.0", text)  # levels printed as given (1, not 1.0), then full
     assert "0.700" in text  # ARI of the merged maps at level 1, mean over the rooms
     csv = pd.read_csv(tmp_path / "out" / "robustness.csv")
     assert len(csv) == 8 and set(csv["variant"]) == {"full", "base"}

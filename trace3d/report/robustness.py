@@ -103,6 +103,9 @@ def write_robustness(spec: dict, out_md: Path, plot: Path | None = None) -> pd.D
 
     wide = summary.pivot(index="level", columns="variant", values="object mIoU")[variants]
     nvs = summary.pivot(index="level", columns="variant", values="NVS mIoU")[variants]
+    for frame in (wide, nvs):  # levels as written (0.25, not 0.2)
+        frame.index = [f"{x:g}" for x in frame.index]
+        frame.index.name = "level"
     lines = [
         "# Robustness to mask inconsistency",
         "",
@@ -112,18 +115,20 @@ def write_robustness(spec: dict, out_md: Path, plot: Path | None = None) -> pd.D
         "",
         "## Object mIoU (3D extraction, %)",
         "",
-        wide.to_markdown(floatfmt=".1f"),
+        _md(wide, ".1f"),
         "",
         "## NVS mIoU (novel-view 2D segmentation, %)",
         "",
-        nvs.to_markdown(floatfmt=".1f"),
+        _md(nvs, ".1f"),
     ]
     if len(merges):
         mm = merges.groupby("level").mean(numeric_only=True)
+        mm.index = [f"{x:g}" for x in mm.index]
+        mm.index.name = "level"
         lines += ["", "## The masks at each level (mean over rooms)", "",
                   "ARI: adjusted Rand index of the per-view maps against the ground-truth objects; straddling: "
                   "fraction of instances whose second object holds >= 20 % of them; before = raw patches, after "
-                  "= consistent instance maps.", "", mm.to_markdown(floatfmt=".3f")]
+                  "= consistent instance maps.", "", _md(mm, ".3f")]
     with atomic_file(out_md) as tmp:
         tmp.write_text("\n".join(lines) + "\n")
     table = runs.sort_values(["level", "variant", "scene"]).reset_index(drop=True)
@@ -132,6 +137,12 @@ def write_robustness(spec: dict, out_md: Path, plot: Path | None = None) -> pd.D
     if plot is not None:
         _plot(summary, variants, levels, scenes, plot)
     return summary
+
+
+def _md(frame: pd.DataFrame, fmt: str) -> str:
+    """Markdown of ``frame`` with its values formatted as ``fmt`` and its index (the levels) as written."""
+    text = frame.apply(lambda col: col.map(lambda v: "" if pd.isna(v) else format(v, fmt)))
+    return text.to_markdown(disable_numparse=True, colalign=["right"] * (len(frame.columns) + 1))
 
 
 def _plot(summary: pd.DataFrame, variants: list[str], levels: list[float], scenes: list[str], plot: Path) -> None:
