@@ -8,7 +8,7 @@ import re
 import pandas as pd
 import pytest
 
-from trace3d.errors import SceneFormatError, Trace3DError
+from trace3d.errors import Trace3DError
 from trace3d.report.robustness import write_robustness
 
 
@@ -67,7 +67,7 @@ def test_same_inputs_same_table(tmp_path, spec):
 
 def test_missing_evaluation_is_named(tmp_path, spec):
     spec["runs"][3]["eval"] = str(tmp_path / "nowhere")
-    with pytest.raises(SceneFormatError, match="nowhere/metrics.json: file is missing"):
+    with pytest.raises(Trace3DError, match="nowhere/metrics.json: result file is missing"):
         write_robustness(spec, tmp_path / "t.md")
     assert not (tmp_path / "t.md").exists()
 

@@ -21,17 +21,9 @@ import pandas as pd
 
 from ..errors import SceneFormatError, Trace3DError
 from ..io import atomic_file
+from .summary import _read_json
 
 METRICS = (("object mIoU", "extraction", "mIoU"), ("NVS mIoU", "nvs", "mIoU"), ("PSNR", "extraction", "PSNR"))
-
-
-def _read(path: Path) -> dict:
-    if not path.is_file():
-        raise SceneFormatError(f"{path}: file is missing; did its step run?")
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise SceneFormatError(f"{path}: not valid JSON ({exc}).") from exc
 
 
 def _check_spec(spec: dict) -> None:
@@ -50,7 +42,7 @@ def collect_runs(spec: dict) -> pd.DataFrame:
     rows = []
     for run in spec["runs"]:
         path = Path(run["eval"]) / "metrics.json"
-        data = _read(path)
+        data = _read_json(path)
         row = {"scene": str(run["scene"]), "level": float(run["level"]), "variant": str(run["variant"]),
                "protocol": data.get("protocol", "?")}
         for name, section, key in METRICS:
@@ -67,7 +59,7 @@ def collect_merges(spec: dict) -> pd.DataFrame:
     """One row per (scene, level) merge: ground-truth quality of the patches and the merged maps."""
     rows = []
     for entry in spec.get("merges") or []:
-        data = _read(Path(entry["merge"]) / "merge.json")
+        data = _read_json(Path(entry["merge"]) / "merge.json")
         truth = data.get("ground_truth") or {}
         row = {"scene": str(entry["scene"]), "level": float(entry["level"])}
         for when in ("before", "after"):
