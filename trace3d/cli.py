@@ -242,6 +242,13 @@ def _cmd_lift(args: argparse.Namespace) -> None:
                  Path(args.labels) if args.labels else None, tmp, params)
 
 
+def _parse_size(text: str) -> tuple[int, int]:
+    parts = text.lower().split("x")
+    if len(parts) != 2 or not all(p.isdigit() and int(p) > 0 for p in parts):
+        raise Trace3DError(f"bench: --size must look like 160x120, got {text!r}.")
+    return int(parts[0]), int(parts[1])
+
+
 def _cmd_bench(args: argparse.Namespace) -> None:
     if args.name == "render":
         from .render.bench import run_bench
@@ -254,7 +261,8 @@ def _cmd_bench(args: argparse.Namespace) -> None:
     elif args.name == "fit":
         from .training.bench import run_bench
 
-        result = run_bench(quick=args.quick)
+        sizes = [_parse_size(text) for text in args.size] if args.size else None
+        result = run_bench(quick=args.quick, sizes=sizes, iterations=args.iterations)
     elif args.name == "trace":
         from .tracing.bench import run_bench
 
@@ -454,6 +462,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "merge-paper/instances)")
     p.add_argument("--params", help="lift: the lift step's parameters (JSON/YAML or @file) whose wall time is measured")
     p.add_argument("--quick", action="store_true", help="smaller sizes (smoke run)")
+    p.add_argument("--size", action="append", metavar="WxH",
+                   help="fit: frame size to measure (repeatable; default 160x120 and 504x378)")
+    p.add_argument("--iterations", type=int, help="fit: timed iterations per size (default 200)")
     p.add_argument("--out", help="also write the JSON here")
     p.set_defaults(func=_cmd_bench)
     return parser

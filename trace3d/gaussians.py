@@ -336,11 +336,11 @@ class GaussianModel:
         degree = self.sh_degree if degree is None else min(int(degree), self.sh_degree)
         if degree == 0:
             return (SH_C0 * self.sh_dc[:, 0] + 0.5).clamp_min(0.0)
-        coeffs = torch.cat([self.sh_dc, self.sh_rest[:, : num_sh_rest(degree)]], dim=1)
+        from .render.glue_kernels import sh_colors
+
         center = torch.as_tensor(np.asarray(camera_center) if not torch.is_tensor(camera_center) else camera_center)
         center = center.to(dtype=self.means.dtype, device=self.means.device)
-        directions = F.normalize(self.means - center[None], dim=-1)
-        return (eval_sh(degree, coeffs, directions) + 0.5).clamp_min(0.0)
+        return sh_colors(self.means, self.sh_dc, self.sh_rest, center, degree)
 
     # --- PLY -----------------------------------------------------------------------------------
     def ply_attribute_names(self) -> list[str]:

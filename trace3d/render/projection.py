@@ -34,8 +34,9 @@ from numba import njit, prange
 from torch import Tensor
 
 from ..errors import Trace3DError
-from ..geometry import quat_to_rotmat
+from ..geometry import quat_to_rotmat  # noqa: F401  (re-exported by trace3d.render)
 from ..scene import Camera
+from .glue_kernels import splat_frames
 
 ALPHA_MIN = 1.0 / 255.0  # skip a pair whose alpha is below this
 ALPHA_MAX = 0.99  # clamp alpha
@@ -128,19 +129,10 @@ def project(splats: Splats, camera: Camera, near: float = 0.01) -> Projected:
     z = p_cam[:, 2]
     in_front = z > near
     z_safe = torch.where(in_front, z, torch.ones_like(z))
-    axes = rot_cw @ quat_to_rotmat(splats.quats)  # [N, 3, 3] columns t_u^c, t_v^c, t_w^c
-    normal = axes[:, :, 2]
-    facing = (normal * p_cam).sum(-1, keepdim=True) > 0
-    normal = torch.where(facing, -normal, normal)
     # projected centre; T's third column is K p_c = z (means2d, 1)
     pix_h = p_cam @ K.T
     means2d = pix_h[:, :2] / z_safe[:, None]
-    col_u = (axes[:, :, 0] * splats.scales[:, 0:1]) @ K.T
-    col_v = (axes[:, :, 1] * splats.scales[:, 1:2]) @ K.T
-    col_p = torch.cat([means2d * z_safe[:, None], z_safe[:, None]], dim=-1)
-    ray_t = torch.stack([col_u, col_v, col_p], dim=-1)  # [N, 3, 3], rows T_x, T_y, T_w
-    tx, ty, tw = ray_t[:, 0], ray_t[:, 1], ray_t[:, 2]
-    coeffs = torch.cat([torch.linalg.cross(tx, ty), torch.linalg.cross(ty, tw), torch.linalg.cross(tw, tx)], dim=-1)
+    ray_t, coeffs, normal = splat_frames(splats.quats, splats.scales, means2d, z_safe, p_cam, K, rot_cw)
 
     boxes = footprint_boxes_fast(ray_t.detach(), means2d.detach(), splats.opacities.detach(), in_front,
                                  camera.width, camera.height)

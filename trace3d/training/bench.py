@@ -151,16 +151,23 @@ def bench_size(size: tuple[int, int], gaussians: int, iterations: int, warmup: i
     }
 
 
-def run_bench(quick: bool = False) -> dict:
-    """The phase table for both sizes (``quick``: fewer Gaussians and iterations, a smoke run)."""
+def run_bench(quick: bool = False, sizes: list[tuple[int, int]] | None = None,
+              iterations: int | None = None) -> dict:
+    """The phase table for each size (default: 160x120 and 504x378; ``quick``: fewer Gaussians and
+    iterations, a smoke run)."""
     import numba
 
+    from ..render.glue_kernels import fused_enabled
+
     gaussians = 5000 if quick else 80_000
-    iterations, warmup = (10, 3) if quick else (200, 10)
+    default_iterations, warmup = (10, 3) if quick else (200, 10)
+    iterations = default_iterations if iterations is None else int(iterations)
+    if iterations < 1:
+        raise ValueError(f"bench fit: iterations must be >= 1, got {iterations}")
     views = 6 if quick else 24
-    sizes = [(160, 120), (504, 378)]
+    sizes = [(160, 120), (504, 378)] if sizes is None else list(sizes)
     out = {"torch_threads": torch.get_num_threads(), "numba_threads": numba.get_num_threads(),
-           "gaussians": gaussians, "quick": quick, "sizes": {}}
+           "gaussians": gaussians, "quick": quick, "fused_glue": fused_enabled(), "sizes": {}}
     with tempfile.TemporaryDirectory(prefix="trace3d-bench-fit-") as tmp:
         for size in sizes:
             log.info("bench fit: %dx%d, %d Gaussians, %d iterations", size[0], size[1], gaussians, iterations)

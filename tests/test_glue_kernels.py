@@ -1,0 +1,158 @@
+"""The fused numba glue kernels (splat frames, SH colours) against their torch twins."""
+
+import numpy as np
+import pytest
+import torch
+
+from trace3d.render import glue_kernels as gk
+from trace3d.render.projection import camera_tensors
+from trace3d.scene import Camera
+
+
+def _camera(seed=0):
+    rng = np.random.default_rng(seed)
+    from trace3d.geometry import quat_to_rotmat
+
+    R = quat_to_rotmat(torch.as_tensor(rng.normal(size=4))).numpy()
+    w2c = np.eye(4)
+    w2c[:3, :3] = R
+    w2c[:3, 3] = rng.normal(size=3) * 0.3
+    K = np.array([[90.0, 0.7, 41.0], [0.0, 85.0, 33.0], [0.0, 0.0, 1.0]])  # skew, to catch K^T slips
+    return Camera(name="c", split="train", width=80, height=64, K=K, world_to_camera=w2c)
+
+
+def _frames_inputs(n, dtype, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    quats = (torch.randn(n, 4, generator=g, dtype=torch.float64) * 1.7).to(dtype)  # not unit length
+    scales = torch.rand(n, 2, generator=g, dtype=torch.float64).to(dtype) * 0.2 + 0.01
+    means2d = (torch.rand(n, 2, generator=g, dtype=torch.float64) * 80).to(dtype)
+    z = (torch.rand(n, generator=g, dtype=torch.float64) * 4 + 0.5).to(dtype)
+    p_cam = torch.randn(n, 3, generator=g, dtype=torch.float64).to(dtype)  # both sides of every disk
+    return [t.requires_grad_() for t in (quats, scales, means2d, z)], p_cam
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-10), (torch.float32, 1e-4)])
+def test_splat_frames_match_torch_twin(dtype, tol):
+    cam = _camera()
+    K, R, _ = camera_tensors(cam, torch.device("cpu"), dtype)
+    (q, s, m, z), p_cam = _frames_inputs(300, dtype)
+    outs = gk.splat_frames(q, s, m, z, p_cam, K, R)
+    refs = gk.splat_frames_torch(q, s, m, z, p_cam, K, R)
+    for a, b in zip(outs, refs):
+        torch.testing.assert_close(a, b, rtol=tol, atol=tol)
+    g = torch.Generator().manual_seed(5)
+    ups = [torch.randn(o.shape, generator=g, dtype=torch.float64).to(dtype) for o in outs]
+    grads = torch.autograd.grad(sum((o * u).sum() for o, u in zip(outs, ups)), (q, s, m, z))
+    grads_ref = torch.autograd.grad(sum((o * u).sum() for o, u in zip(refs, ups)), (q, s, m, z))
+    for name, a, b in zip(("quats", "scales", "means2d", "z"), grads, grads_ref):
+        scale = float(b.abs().max())
+        assert float((a - b).abs().max()) <= tol * 10 * max(scale, 1.0), name
+
+
+def test_splat_frames_partial_upstream_and_gradcheck():
+    """Only the coefficients used (as the tile kernels use them), and a finite-difference check."""
+    cam = _camera(1)
+    K, R, _ = camera_tensors(cam, torch.device("cpu"), torch.float64)
+    (q, s, m, z), p_cam = _frames_inputs(6, torch.float64, seed=3)
+    # only coeffs and T_w reach the loss
+    _, coeffs, _ = gk.splat_frames(q, s, m, z, p_cam, K, R)
+    g1 = torch.autograd.grad(coeffs.square().sum(), (q, s, m, z))
+    _, coeffs_ref, _ = gk.splat_frames_torch(q, s, m, z, p_cam, K, R)
+    g2 = torch.autograd.grad(coeffs_ref.square().sum(), (q, s, m, z))
+    for a, b in zip(g1, g2):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
+    assert torch.autograd.gradcheck(lambda *a: gk.splat_frames(*a, p_cam, K, R), (q, s, m, z), eps=1e-6, atol=1e-5)
+
+
+def test_splat_frames_normals_face_the_camera():
+    cam = _camera(2)
+    K, R, _ = camera_tensors(cam, torch.device("cpu"), torch.float64)
+    (q, s, m, z), p_cam = _frames_inputs(200, torch.float64, seed=4)
+    _, _, normals = gk.splat_frames(q, s, m, z, p_cam, K, R)
+    assert bool(((normals * p_cam).sum(-1) <= 0).all())
+    torch.testing.assert_close(normals.norm(dim=-1), torch.ones(200, dtype=torch.float64))
+
+
+def _sh_inputs(n, k, dtype, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=g, dtype=torch.float64).to(dtype).requires_grad_()
+    dc = (torch.randn(n, 1, 3, generator=g, dtype=torch.float64) * 2).to(dtype).requires_grad_()  # some clamp at 0
+    rest = (torch.randn(n, k, 3, generator=g, dtype=torch.float64) * 0.5).to(dtype).requires_grad_()
+    center = torch.tensor([0.1, -0.2, 0.3], dtype=dtype)
+    return means, dc, rest, center
+
+
+@pytest.mark.parametrize("degree", [1, 2, 3])
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-10), (torch.float32, 1e-5)])
+def test_sh_colors_match_torch_twin(degree, dtype, tol):
+    means, dc, rest, center = _sh_inputs(1500, 15, dtype, seed=degree)
+    out = gk.sh_colors(means, dc, rest, center, degree)
+    ref = gk.sh_colors_torch(means, dc, rest, center, degree)
+    torch.testing.assert_close(out, ref, rtol=tol, atol=tol)
+    assert bool((ref == 0).any()) and bool((ref > 0).any())  # the clamp is exercised
+    up = torch.randn(out.shape, generator=torch.Generator().manual_seed(1), dtype=dtype)
+    grads = torch.autograd.grad((out * up).sum(), (means, dc, rest))
+    grads_ref = torch.autograd.grad((ref * up).sum(), (means, dc, rest))
+    for name, a, b in zip(("means", "dc", "rest"), grads, grads_ref):
+        torch.testing.assert_close(a, b, rtol=tol * 10, atol=tol * 10, msg=name)
+    # coefficients beyond the degree get no gradient
+    assert bool((grads[2][:, (degree + 1) ** 2 - 1:] == 0).all())
+
+
+def test_sh_gradcheck():
+    means, dc, rest, center = _sh_inputs(5, 15, torch.float64, seed=9)
+    with torch.no_grad():
+        dc += 3.0  # away from the clamp's kink
+    assert torch.autograd.gradcheck(lambda a, b, c: gk.sh_colors(a, b, c, center, 3), (means, dc, rest),
+                                    eps=1e-6, atol=1e-6)
+
+
+def test_fused_switch_and_determinism():
+    means, dc, rest, center = _sh_inputs(3000, 15, torch.float32)
+    out = gk.sh_colors(means, dc, rest, center, 3)
+    g1 = torch.autograd.grad(out.sum(), (means, rest))
+    g2 = torch.autograd.grad(gk.sh_colors(means, dc, rest, center, 3).sum(), (means, rest))
+    for a, b in zip(g1, g2):
+        assert torch.equal(a, b)
+    gk.set_fused(False)
+    try:
+        assert not gk.use_fused(means)
+        assert out.grad_fn.name() != gk.sh_colors(means, dc, rest, center, 3).grad_fn.name()
+    finally:
+        gk.set_fused(True)
+    assert gk.use_fused(means) and not gk.use_fused(means.to(torch.float16))
+
+
+def test_render_uses_fused_path_and_matches_twin():
+    """A whole render (projection + SH colours + tile kernels) agrees with the torch glue."""
+    from trace3d.gaussians import GaussianModel
+    from trace3d.render import render
+
+    g = torch.Generator().manual_seed(0)
+    n = 400
+    cam = _camera(3)
+    c2w = np.linalg.inv(cam.world_to_camera)
+    means = torch.as_tensor(c2w[:3, :3] @ np.stack([np.zeros(n), np.zeros(n), np.full(n, 3.0)]) + c2w[:3, 3:4]).T
+    means = means.float() + torch.randn(n, 3, generator=g) * 0.6
+    model = GaussianModel(means=means, quats=torch.randn(n, 4, generator=g),
+                                       log_scales=torch.randn(n, 2, generator=g) * 0.3 - 3.0,
+                                       opacity_logits=torch.randn(n, generator=g),
+                                       sh_dc=torch.randn(n, 1, 3, generator=g), sh_rest=torch.randn(n, 15, 3, generator=g) * 0.3)
+    results = []
+    for fused in (True, False):
+        gk.set_fused(fused)
+        try:
+            params = [t.detach().clone().requires_grad_() for t in (model.means, model.quats, model.log_scales,
+                                                                      model.opacity_logits, model.sh_dc, model.sh_rest)]
+            m = GaussianModel(means=params[0], quats=params[1], log_scales=params[2],
+                                           opacity_logits=params[3], sh_dc=params[4], sh_rest=params[5])
+            colors = m.colors(torch.as_tensor(cam.center, dtype=torch.float32), 3)
+            out = render(m.splats(), cam, colors)
+            loss = out.features.square().sum() + out.normal.sum() + out.depth.sum()
+            results.append((out.features.detach(), torch.autograd.grad(loss, params)))
+        finally:
+            gk.set_fused(True)
+    assert float(results[0][0].abs().sum()) > 0
+    torch.testing.assert_close(results[0][0], results[1][0], rtol=1e-4, atol=1e-5)
+    for a, b in zip(results[0][1], results[1][1]):
+        torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4 * max(1.0, float(b.abs().max())))
