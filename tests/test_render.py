@@ -289,6 +289,58 @@ class TestProjection:
         assert np.array_equal(fast, proj.boxes)
         assert (fast[:, 2:] <= [camera.width, camera.height]).all() and (fast[:, :2] >= 0).all()
 
+    @staticmethod
+    def crossing_scene(seed: int, n: int = 80):
+        """Large disks whose centres sit a few centimetres to half a metre in front of the camera
+        plane, so that most of them cross it (their projection is unbounded): the case whose boxes
+        are bounded by the part of the disk in front of the near plane."""
+        camera = make_camera(rotate=True)
+        gen = torch.Generator().manual_seed(seed)
+        z = 0.02 + 0.5 * torch.rand(n, generator=gen) ** 2
+        lateral = (torch.rand(n, 2, generator=gen) - 0.5) * 2.0 * torch.tensor([0.8, 0.6])
+        lateral[: n // 2] *= z[: n // 2, None] * 0.7  # half near the optical axis: their disks reach the image
+        cam_pts = torch.cat([lateral, z[:, None]], 1)
+        c2w = torch.as_tensor(camera.camera_to_world, dtype=torch.float32)
+        means = cam_pts @ c2w[:3, :3].T + c2w[:3, 3]
+        scales = 0.05 + 0.6 * torch.rand(n, 2, generator=gen)
+        quats = torch.randn(n, 4, generator=gen)
+        opac = 0.05 + 0.9 * torch.rand(n, generator=gen)
+        return Splats(means, quats, scales, opac), camera, torch.rand(n, 3, generator=gen)
+
+    @pytest.mark.parametrize("seed", [0, 1, 2])
+    def test_boxes_of_disks_crossing_the_camera_plane(self, seed):
+        splats, camera, _ = self.crossing_scene(seed)
+        proj = project(splats, camera)
+        T = proj.ray_transforms.detach().double()
+        level = torch.log(splats.opacities.double() * 255.0)
+        crossing = (2 * level * (T[:, 2, 0] ** 2 + T[:, 2, 1] ** 2) - T[:, 2, 2] ** 2 >= 0) & (proj.depths > 0.01)
+        assert int(crossing.sum()) >= 10, "the scene should have disks crossing the camera plane"
+        # every pair that blends (float64, written independently) lies inside its splat's box
+        alpha = pair_terms(splats, camera)["alpha"]  # [H, W, N]
+        ys, xs, ks = np.nonzero(alpha > 0)
+        b = proj.boxes[ks]
+        assert ((xs >= b[:, 0]) & (xs < b[:, 2]) & (ys >= b[:, 1]) & (ys < b[:, 3])).all()
+        # and the boxes are bounded: crossing disks no longer take the whole image
+        full = (proj.boxes[:, 2] - proj.boxes[:, 0] == camera.width) & (proj.boxes[:, 3] - proj.boxes[:, 1] == camera.height)
+        assert int(full[crossing.numpy()].sum()) < int(crossing.sum())
+        front = proj.depths > 0.01
+        args = (proj.ray_transforms.detach(), proj.means2d.detach(), splats.opacities, front, camera.width,
+                camera.height)
+        assert np.array_equal(footprint_boxes_fast(*args), footprint_boxes(*args))
+
+    def test_crossing_disks_render_as_the_reference(self):
+        splats, camera, features = self.crossing_scene(3)
+        background = torch.rand(3, generator=torch.Generator().manual_seed(3))
+        out_r, grads_r = run_backend(splats, camera, features, background, "reference")
+        out_k, grads_k = run_backend(splats, camera, features, background, "numba")
+        assert float(out_r.alpha.detach().max()) > 0.5
+        for name in OUTPUTS:
+            err = float((getattr(out_k, name) - getattr(out_r, name)).detach().abs().max())
+            assert err <= 1e-4, f"{name}: max abs error {err:.2e}"
+        for name, g in grads_r.items():
+            err = rel_err(grads_k[name], g)
+            assert err <= 1e-3, f"gradient of {name}: relative error {err:.2e}"
+
     def test_rotation_and_normals(self):
         splats, camera, _ = make_scene(9, n=50, camera=make_camera(rotate=True))
         proj = project(splats, camera)

@@ -26,6 +26,7 @@ unit ellipse; the two agree for the distant, sub-pixel disks the filter exists f
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -135,20 +136,67 @@ def project(splats: Splats, camera: Camera, near: float = 0.01) -> Projected:
     ray_t, coeffs, normal = splat_frames(splats.quats, splats.scales, means2d, z_safe, p_cam, K, rot_cw)
 
     boxes = footprint_boxes_fast(ray_t.detach(), means2d.detach(), splats.opacities.detach(), in_front,
-                                 camera.width, camera.height)
+                                 camera.width, camera.height, near)
     visible = in_front & torch.as_tensor((boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1]),
                                          device=means.device)
     return Projected(ray_t, coeffs, means2d, normal, z.detach(), splats.opacities, boxes, visible)
 
 
+
+def _clipped_disk_range(a0, a1, a2, w0, w1, w2, rho, near):
+    """Range of the screen coordinate ``(a . (u, v, 1)) / (w . (u, v, 1))`` over the part of the disk
+    ``u^2 + v^2 <= rho^2`` whose depth ``w . (u, v, 1)`` is at least ``near`` (a disk that crosses the
+    camera plane; ``a`` is the row T_x or T_y, ``w`` the row T_w).
+
+    The coordinate is linear-fractional with a positive denominator on that convex set, so its
+    extremes lie on the boundary: at a critical point of the arc (``P cos t + Q sin t = S``) that is
+    in front of ``near``, or at an end of the chord cut by the plane ``depth = near``.  Returns
+    (lo, hi), or (inf, -inf) when no part of the disk is that far in front.  Plain Python, compiled
+    by numba for :func:`_boxes_kernel` (the numpy twin calls it directly)."""
+    lo = math.inf
+    hi = -math.inf
+    p_ = a1 * w2 - a2 * w1
+    q_ = a2 * w0 - a0 * w2
+    s_ = -rho * (a1 * w0 - a0 * w1)
+    amp = math.sqrt(p_ * p_ + q_ * q_)
+    if amp > 0.0 and abs(s_) <= amp:
+        base = math.atan2(q_, p_)
+        spread = math.acos(min(max(s_ / amp, -1.0), 1.0))
+        for t in (base + spread, base - spread):
+            u = rho * math.cos(t)
+            v = rho * math.sin(t)
+            z = w0 * u + w1 * v + w2
+            if z >= near:
+                f = (a0 * u + a1 * v + a2) / z
+                lo = min(lo, f)
+                hi = max(hi, f)
+    tilt = math.sqrt(w0 * w0 + w1 * w1)
+    if tilt > 0.0 and abs(near - w2) <= rho * tilt:
+        base = math.atan2(w1, w0)
+        spread = math.acos(min(max((near - w2) / (rho * tilt), -1.0), 1.0))
+        for t in (base + spread, base - spread):
+            u = rho * math.cos(t)
+            v = rho * math.sin(t)
+            f = (a0 * u + a1 * v + a2) / near
+            lo = min(lo, f)
+            hi = max(hi, f)
+    return lo, hi
+
+
+_clipped_disk_range_nb = njit(cache=True)(_clipped_disk_range)
+
 def footprint_boxes(ray_t: Tensor, means2d: Tensor, opacities: Tensor, in_front: Tensor,
-                    width: int, height: int) -> np.ndarray:
+                    width: int, height: int, near: float = 0.01) -> np.ndarray:
     """Pixel boxes that contain every pixel where a splat can reach alpha >= 1/255.
 
     alpha >= 1/255 needs sigma <= L = ln(255 o).  Either the ray meets the disk of radius
     r = sqrt(2 L) (bounded exactly by the tangent lines of its projected ellipse, from the dual
     conic T diag(r^2, r^2, -1) T^T), or the pixel lies within sqrt(L) pixels of the centre (the
-    low-pass filter).  A disk that is not entirely in front of the camera gets the whole image.
+    low-pass filter).  A disk that crosses the camera plane (its projection is unbounded) is
+    bounded by the part of it at depth >= ``near``, the only part the renderers blend
+    (:func:`_clipped_disk_range`); before, such disks took the whole image, and in a fit's early
+    iterations a few hundred of them (Gaussians beside the camera, centres a few centimetres in
+    front of its plane) were nine tenths of the tile kernels' work.
 
     Args:
         ray_t: [N, 3, 3] ray transforms; means2d: [N, 2]; opacities: [N]; in_front: [N] bool.
@@ -182,8 +230,14 @@ def footprint_boxes(ray_t: Tensor, means2d: Tensor, opacities: Tensor, in_front:
             disc = np.sqrt(np.maximum(c02 * c02 - c00 * c22, 0.0))
             a = (c02 + disc) / c22
             b = (c02 - disc) / c22
-            lo[:, axis] = np.where(ellipse, np.minimum(a, b), -np.inf)
-            hi[:, axis] = np.where(ellipse, np.maximum(a, b), np.inf)
+            lo[:, axis] = np.where(ellipse, np.minimum(a, b), np.inf)
+            hi[:, axis] = np.where(ellipse, np.maximum(a, b), -np.inf)
+        rho = np.sqrt(np.maximum(r2, 0.0))
+        for k in np.nonzero(ok & ~ellipse)[0]:
+            w = T[k, 2]
+            for axis in range(2):
+                a = T[k, axis]
+                lo[k, axis], hi[k, axis] = _clipped_disk_range(a[0], a[1], a[2], w[0], w[1], w[2], rho[k], near)
         filt = np.sqrt(np.maximum(level, 0.0) / (FILTER_INV_SQUARE / 2.0))
         lo = np.minimum(lo, m2d - filt[:, None]) - BOX_MARGIN
         hi = np.maximum(hi, m2d + filt[:, None]) + BOX_MARGIN
@@ -200,7 +254,7 @@ def footprint_boxes(ray_t: Tensor, means2d: Tensor, opacities: Tensor, in_front:
 
 
 @njit(parallel=True, cache=True)
-def _boxes_kernel(T, m2d, op, in_front, width, height, alpha_min, margin, filter_half):
+def _boxes_kernel(T, m2d, op, in_front, width, height, alpha_min, margin, filter_half, near):
     n = T.shape[0]
     boxes = np.zeros((n, 4), np.int64)
     size = (float(width), float(height))
@@ -219,8 +273,6 @@ def _boxes_kernel(T, m2d, op, in_front, width, height, alpha_min, margin, filter
             ti0 = float(T[k, axis, 0])
             ti1 = float(T[k, axis, 1])
             ti2 = float(T[k, axis, 2])
-            lo = -np.inf
-            hi = np.inf
             if c22 < 0:
                 c02 = (ti0 * r2) * t20 + (ti1 * r2) * t21 + (ti2 * -1.0) * t22
                 c00 = (ti0 * r2) * ti0 + (ti1 * r2) * ti1 + (ti2 * -1.0) * ti2
@@ -229,6 +281,8 @@ def _boxes_kernel(T, m2d, op, in_front, width, height, alpha_min, margin, filter
                 b = (c02 - disc) / c22
                 lo = min(a, b)
                 hi = max(a, b)
+            else:
+                lo, hi = _clipped_disk_range_nb(ti0, ti1, ti2, t20, t21, t22, np.sqrt(max(r2, 0.0)), near)
             m = float(m2d[k, axis])
             lo = min(lo, m - filt) - margin
             hi = max(hi, m + filt) + margin
@@ -244,7 +298,7 @@ def _boxes_kernel(T, m2d, op, in_front, width, height, alpha_min, margin, filter
 
 
 def footprint_boxes_fast(ray_t: Tensor, means2d: Tensor, opacities: Tensor, in_front: Tensor,
-                         width: int, height: int) -> np.ndarray:
+                         width: int, height: int, near: float = 0.01) -> np.ndarray:
     """:func:`footprint_boxes` as a numba kernel (the numpy version is its tested twin)."""
     n = ray_t.shape[0]
     if n == 0:
@@ -254,7 +308,7 @@ def footprint_boxes_fast(ray_t: Tensor, means2d: Tensor, opacities: Tensor, in_f
     op = np.ascontiguousarray(opacities.detach().cpu().numpy())
     front = np.ascontiguousarray(in_front.cpu().numpy())
     return _boxes_kernel(T, m2d, op, front, int(width), int(height), ALPHA_MIN, BOX_MARGIN,
-                         FILTER_INV_SQUARE / 2.0)
+                         FILTER_INV_SQUARE / 2.0, float(near))
 
 
 def pixel_centres(width: int, height: int, device: torch.device, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
