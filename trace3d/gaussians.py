@@ -285,10 +285,10 @@ class GaussianModel:
         return self.map(lambda t: t.detach()[keep])
 
     def is_finite(self) -> bool:
-        """Whether every floating-point attribute is finite (one reduction per tensor; an
-        overflowing sum counts as not finite)."""
+        """Whether every floating-point attribute is finite (one sum per tensor: a NaN or an infinity
+        makes it non-finite, and so does an overflowing sum)."""
         with torch.no_grad():
-            sums = [t.detach().float().abs().sum() for t in self.tensors().values() if t.is_floating_point()]
+            sums = [t.detach().float().sum() for t in self.tensors().values() if t.is_floating_point()]
             total = torch.stack(sums).sum()
         return bool(torch.isfinite(total))
 

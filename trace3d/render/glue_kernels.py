@@ -14,6 +14,8 @@ forward and one backward:
   before).
 
 Both work per Gaussian, so every worker writes only its own rows: race-free and deterministic.
+The backward passes skip Gaussians whose upstream gradients are all zero (those the view did not
+render, usually most of them): their gradients are exactly zero.
 Internally float64, inputs and outputs in the caller's dtype (float32 or float64).  CPU only: CUDA
 tensors take the torch twins (``use_fused`` decides).
 """
@@ -124,6 +126,16 @@ def _frames_backward(quats, scales, m2d, zs, pcam, K, R, g_ray, g_coeffs, g_norm
     n = quats.shape[0]
     k00, k01, k02, k10, k11, k12 = K[0, 0], K[0, 1], K[0, 2], K[1, 0], K[1, 1], K[1, 2]
     for g in prange(n):
+        # a Gaussian the view did not render gets no upstream gradient: its gradients are zero
+        nonzero = False
+        for i in range(9):
+            nonzero |= g_coeffs[g, i] != 0
+        for i in range(3):
+            nonzero |= (g_normals[g, i] != 0) | (g_ray[g, 0, i] != 0) | (g_ray[g, 1, i] != 0) | (g_ray[g, 2, i] != 0)
+        if not nonzero:
+            g_quats[g, 0] = g_quats[g, 1] = g_quats[g, 2] = g_quats[g, 3] = 0.0
+            g_scales[g, 0] = g_scales[g, 1] = g_m2d[g, 0] = g_m2d[g, 1] = g_zs[g] = 0.0
+            continue
         w, x, y, z, inv, q00, q01, q02, q10, q11, q12, q20, q21, q22 = _rotation(
             float(quats[g, 0]), float(quats[g, 1]), float(quats[g, 2]), float(quats[g, 3]))
         au0 = R[0, 0] * q00 + R[0, 1] * q10 + R[0, 2] * q20
@@ -390,6 +402,10 @@ def _sh_backward(means, sh_dc, sh_rest, center, degree, g_colors, g_means, g_dc,
         b = np.zeros(16)
         db = np.zeros((16, 3))
         for g in range(chunk * _SH_CHUNK, min(n, (chunk + 1) * _SH_CHUNK)):
+            if g_colors[g, 0] == 0 and g_colors[g, 1] == 0 and g_colors[g, 2] == 0:
+                # not rendered in this view: zero gradients (g_means and g_rest start zeroed)
+                g_dc[g, 0, 0] = g_dc[g, 0, 1] = g_dc[g, 0, 2] = 0.0
+                continue
             x, y, z, inv = _direction(means, g, cx, cy, cz)
             _sh_basis(x, y, z, degree, b, db, True)
             gdx = 0.0

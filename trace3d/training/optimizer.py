@@ -58,11 +58,12 @@ class GaussianOptimizer:
 
         self.model = GaussianModel(**{n: wrap(n, getattr(model, n)) for n in GaussianModel.PARAM_NAMES},
                                    extras={n: wrap(n, t) for n, t in model.extras.items()})
-        self.optimizer = torch.optim.Adam(
-            [{"params": [self.model.get(name)], "lr": lr, "name": name} for name, lr in lrs.items()],
-            lr=0.0,
-            eps=1e-15,
-        )
+        groups = [{"params": [self.model.get(name)], "lr": lr, "name": name} for name, lr in lrs.items()]
+        # torch's fused Adam (one multi-threaded pass per tensor instead of seven element-wise ops):
+        # the same update up to rounding, several times faster on the CPU for 80k Gaussians
+        fused = params.fused_adam and all(p.dtype in (torch.float32, torch.float64) and
+                                          p.device.type in ("cpu", "cuda") for g in groups for p in g["params"])
+        self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=fused or None)
         self.statistics: dict[str, torch.Tensor] = {}
         self._fills: dict[str, float] = {}
 
