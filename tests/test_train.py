@@ -477,3 +477,32 @@ def test_bench_fit_phases_add_up_and_instrumentation_is_removed(tmp_path):
     for name in ("projection", "forward_kernel", "backward_kernel", "loss", "optimizer"):
         assert phases[name] > 0, name
     assert 0 < out["kernel_share"] < 1 and out["gaussians_start"] == 400
+
+
+def test_fit_sweep_runs_the_step_per_budget_and_schedule(tmp_path):
+    """`trace3d bench fit-sweep`: one gaussians step per (budget, schedule scale), iterations scaled."""
+    from trace3d.training import bench
+
+    room = tmp_path / "room"
+    write_plane_scene(room / "scene")
+    params = {k: v for k, v in STEP_PARAMS.items() if k != "schedule_scale"}
+    plot = tmp_path / "sweep.png"
+    out = bench.run_sweep([room], budgets=[150, 400], scales=[0.5, 1.0], out_plot=plot, base_params=params)
+    rows = out["rows"]
+    assert [(r["max_gaussians"], r["schedule_scale"]) for r in rows] == [(150, 0.5), (150, 1.0), (400, 0.5), (400, 1.0)]
+    assert [r["iterations"] for r in rows] == [30, 60, 30, 60]
+    assert all(r["room"] == "room" and 5 < r["test_psnr"] < 60 and r["minutes"] > 0 for r in rows), rows
+    # the budget caps densification: never more Gaussians than it allows after the initial 300
+    assert all(r["gaussians"] <= max(300, r["max_gaussians"]) for r in rows)
+    assert plot.stat().st_size > 1000
+
+
+def test_bench_fit_compare_and_baseline_checks(tmp_path):
+    from trace3d.training import bench
+
+    current = {"sizes": {"160x120": {"iterations_per_s": 20.0}, "504x378": {"iterations_per_s": 6.0}}}
+    base = {"sizes": {"160x120": {"iterations_per_s": 5.0}}}
+    cmp = bench.compare(current, base)
+    assert set(cmp) == {"160x120"} and cmp["160x120"]["speedup"] == pytest.approx(4.0)
+    with pytest.raises(FileNotFoundError, match="not a trace3d checkout"):
+        bench.run_baseline(tmp_path, None, None, quick=True)

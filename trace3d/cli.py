@@ -262,7 +262,23 @@ def _cmd_bench(args: argparse.Namespace) -> None:
         from .training.bench import run_bench
 
         sizes = [_parse_size(text) for text in args.size] if args.size else None
+        baseline = None
+        if args.baseline:
+            from .training.bench import run_baseline
+
+            baseline = run_baseline(Path(args.baseline), sizes, args.iterations, args.quick)
         result = run_bench(quick=args.quick, sizes=sizes, iterations=args.iterations)
+        if baseline is not None:
+            from .training.bench import compare
+
+            result = {**result, "baseline": baseline, "compared": compare(result, baseline)}
+    elif args.name == "fit-sweep":
+        from .training.bench import run_sweep
+
+        if not args.room_list:
+            raise Trace3DError("bench fit-sweep: give at least one --rooms folder (a fitted room's results folder).")
+        result = run_sweep([Path(r) for r in args.room_list], [int(b) for b in args.budgets],
+                           [float(x) for x in args.scales], Path(args.plot) if args.plot else None)
     elif args.name == "trace":
         from .tracing.bench import run_bench
 
@@ -456,7 +472,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_tracing_table)
 
     p = sub.add_parser("bench", help="benchmarks; print one JSON object")
-    p.add_argument("name", choices=["render", "synthetic", "trace", "lift", "lift-forms", "fit"])
+    p.add_argument("name", choices=["render", "synthetic", "trace", "lift", "lift-forms", "fit", "fit-sweep"])
     p.add_argument("--room", default="results/room0",
                    help="trace, lift: a fitted room's results folder (scene/, poses/, gaussians/, patches/ or "
                         "merge-paper/instances)")
@@ -465,6 +481,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", action="append", metavar="WxH",
                    help="fit: frame size to measure (repeatable; default 160x120 and 504x378)")
     p.add_argument("--iterations", type=int, help="fit: timed iterations per size (default 200)")
+    p.add_argument("--baseline", metavar="CHECKOUT",
+                   help="fit: also run this checkout's fit benchmark first (e.g. a git worktree of the previous "
+                        "main) and report both side by side")
+    p.add_argument("--rooms", dest="room_list", nargs="+", help="fit-sweep: rooms' results folders (scene/, poses/)")
+    p.add_argument("--budgets", nargs="+", default=["20000", "40000", "80000"],
+                   help="fit-sweep: Gaussian budgets (max_gaussians)")
+    p.add_argument("--scales", nargs="+", default=["0.05", "0.1"],
+                   help="fit-sweep: schedule scales (0.1 = 3,000 iterations)")
+    p.add_argument("--plot", help="fit-sweep: PNG of test PSNR against minutes")
     p.add_argument("--out", help="also write the JSON here")
     p.set_defaults(func=_cmd_bench)
     return parser

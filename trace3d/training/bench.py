@@ -25,6 +25,7 @@ Reports ms per iteration for each, ``kernel_share`` = (forward + backward kernel
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import tempfile
@@ -173,4 +174,133 @@ def run_bench(quick: bool = False, sizes: list[tuple[int, int]] | None = None,
             log.info("bench fit: %dx%d, %d Gaussians, %d iterations", size[0], size[1], gaussians, iterations)
             out["sizes"][f"{size[0]}x{size[1]}"] = bench_size(size, gaussians, iterations, warmup, views, Path(tmp))
     out["load_average"] = [round(x, 2) for x in os.getloadavg()]
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# The other lever: the defaults (Gaussian budget x iterations)
+# ----------------------------------------------------------------------------------------------
+
+
+def run_sweep(rooms: list[Path], budgets: list[int], scales: list[float], out_plot: Path | None = None,
+              base_params: dict | None = None) -> dict:
+    """Fit each room at every (``max_gaussians``, ``schedule_scale``) pair with the ``gaussians``
+    step itself and report test PSNR against fit minutes.
+
+    Args:
+        rooms: fitted rooms' results folders (their ``scene/`` and ``poses/`` are read).
+        budgets: Gaussian budgets (``max_gaussians``); scales: schedule scales (0.1 = 3,000 iterations).
+        out_plot: optional PNG, test PSNR against minutes, one line per budget and room.
+        base_params: other ``gaussians`` parameters (default: the library defaults).
+    Returns:
+        {"rows": [{room, max_gaussians, schedule_scale, iterations, test_psnr, minutes, gaussians}],
+         "load_average": [...]}.
+    """
+    from ..scene import Scene
+    from .step import run_gaussians
+
+    rows = []
+    for room in rooms:
+        room = Path(room)
+        scene = Scene.read(room / "scene")
+        poses = room / "poses"
+        for budget in budgets:
+            for scale in scales:
+                params = {**(base_params or {}), "max_gaussians": int(budget), "schedule_scale": float(scale)}
+                log.info("fit sweep: %s, max_gaussians %d, schedule_scale %g", room.name, budget, scale)
+                with tempfile.TemporaryDirectory(prefix="trace3d-fit-sweep-") as tmp:
+                    run_gaussians(scene, poses if poses.is_dir() else None, Path(tmp), params)
+                    metrics = json.loads((Path(tmp) / "metrics.json").read_text())
+                rows.append({"room": room.name, "max_gaussians": int(budget), "schedule_scale": float(scale),
+                             "iterations": metrics["iterations"], "test_psnr": metrics["test_psnr"],
+                             "minutes": metrics["minutes"], "train_minutes": metrics["train_minutes"],
+                             "gaussians": metrics["num_gaussians"]})
+    result = {"rows": rows, "load_average": [round(x, 2) for x in os.getloadavg()]}
+    if out_plot is not None:
+        plot_sweep(rows, Path(out_plot))
+    return result
+
+
+def plot_sweep(rows: list[dict], path: Path) -> None:
+    """Test PSNR against fit minutes: one line per (room, budget) through its iteration counts."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..io import atomic_file
+
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    rooms = sorted({r["room"] for r in rows})
+    budgets = sorted({r["max_gaussians"] for r in rows})
+    markers = "os^vD*"
+    for ri, room in enumerate(rooms):
+        for bi, budget in enumerate(budgets):
+            pts = sorted((r["minutes"], r["test_psnr"], r["iterations"]) for r in rows
+                         if r["room"] == room and r["max_gaussians"] == budget)
+            if not pts:
+                continue
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], marker=markers[ri % len(markers)],
+                    color=f"C{bi}", linestyle="-" if ri == 0 else "--",
+                    label=f"{room}, {budget // 1000}k Gaussians")
+            for m, psnr, its in pts:
+                ax.annotate(f"{its}", (m, psnr), textcoords="offset points", xytext=(3, -10), fontsize=7)
+    ax.set_xlabel("gaussians step, minutes (fit + evaluation)")
+    ax.set_ylabel("test PSNR (dB)")
+    ax.set_title("2DGS fit: Gaussian budget x iterations (labels: iterations)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_file(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
+    plt.close(fig)
+
+
+def run_baseline(checkout: Path, sizes: list[tuple[int, int]] | None, iterations: int | None,
+                 quick: bool) -> dict:
+    """``trace3d bench fit`` of another checkout (e.g. a ``git worktree`` of the previous main), run
+    in a subprocess with that checkout first on ``PYTHONPATH`` and its own numba cache, so that a
+    change is measured side by side with what it replaces on the same machine in one run.
+
+    Only options that checkout's benchmark knows are passed: ``--size``/``--iterations`` only when
+    they differ from the defaults.
+    """
+    import subprocess
+    import sys
+
+    checkout = Path(checkout).resolve()
+    if not (checkout / "trace3d" / "training" / "bench.py").is_file():
+        raise FileNotFoundError(f"{checkout}: not a trace3d checkout with a fit benchmark (trace3d/training/bench.py).")
+    with tempfile.TemporaryDirectory(prefix="trace3d-bench-baseline-") as tmp:
+        out = Path(tmp) / "baseline.json"
+        cmd = [sys.executable, "-m", "trace3d.cli", "bench", "fit", "--out", str(out)]
+        if quick:
+            cmd.append("--quick")
+        if sizes is not None and sizes != [(160, 120), (504, 378)]:
+            for w, h in sizes:
+                cmd += ["--size", f"{w}x{h}"]
+        if iterations is not None:
+            cmd += ["--iterations", str(iterations)]
+        env = {**os.environ, "PYTHONPATH": str(checkout) + os.pathsep + os.environ.get("PYTHONPATH", ""),
+               "NUMBA_CACHE_DIR": str(Path(tmp) / "numba_cache")}
+        log.info("bench fit: baseline %s", checkout)
+        proc = subprocess.run(cmd, cwd=checkout, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                              text=True)
+        if proc.returncode != 0:
+            raise RuntimeError(f"bench fit of the baseline {checkout} failed: {proc.stderr.strip()[-2000:]}")
+        result = json.loads(out.read_text())
+    head = subprocess.run(["git", "-C", str(checkout), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    result["checkout"] = str(checkout)
+    result["commit"] = head.stdout.strip() if head.returncode == 0 else None
+    return result
+
+
+def compare(current: dict, baseline: dict) -> dict:
+    """Per size: iterations/s of both and their ratio."""
+    out = {}
+    for size, row in current["sizes"].items():
+        base = baseline["sizes"].get(size)
+        if base:
+            out[size] = {"iterations_per_s": row["iterations_per_s"], "baseline_iterations_per_s": base["iterations_per_s"],
+                         "speedup": row["iterations_per_s"] / base["iterations_per_s"]}
     return out
