@@ -477,6 +477,7 @@ def test_bench_fit_phases_add_up_and_instrumentation_is_removed(tmp_path):
     for name in ("projection", "forward_kernel", "backward_kernel", "loss", "optimizer"):
         assert phases[name] > 0, name
     assert 0 < out["kernel_share"] < 1 and out["gaussians_start"] == 400
+    assert out["channels"]["fwd_bwd_ms_16"] > 0 and out["channels"]["ratio_16_over_3"] > 0
 
 
 def test_fit_sweep_runs_the_step_per_budget_and_schedule(tmp_path):

@@ -144,12 +144,38 @@ def bench_size(size: tuple[int, int], gaussians: int, iterations: int, warmup: i
         "density_control": per["density_control"],
     }
     phases["other"] = it_ms - sum(phases.values())
+    channels = _channel_cost(model, train[len(train) // 2])
     return {
+        "channels": channels,
         "width": size[0], "height": size[1], "views": len(train), "gaussians_start": len(model),
         "gaussians_end": len(result.model), "iterations": total, "wall_s": wall,
         "ms_per_iteration": it_ms, "iterations_per_s": 1000.0 / it_ms, "phases_ms": phases,
         "kernel_share": (phases["forward_kernel"] + phases["backward_kernel"]) / it_ms,
     }
+
+
+def _channel_cost(model, camera, repeats: int = 7) -> dict:
+    """Forward + backward time (ms, median) of one view's render with 3 and with 16 feature
+    channels (plus the 3 normal channels the renderer always blends), and their ratio: what
+    rendering lifting's 16-d features costs against colour."""
+    import numpy as np
+
+    from ..render import render
+
+    gen = torch.Generator().manual_seed(0)
+    splats = model.splats()
+    out = {}
+    for c in (3, 16):
+        feats = torch.rand(len(model), c, generator=gen).requires_grad_()
+        times = []
+        for _ in range(repeats + 1):
+            start = time.perf_counter()
+            image = render(splats, camera, feats).features
+            torch.autograd.grad(image.sum(), feats)
+            times.append(time.perf_counter() - start)
+        out[f"fwd_bwd_ms_{c}"] = 1000.0 * float(np.median(times[1:]))
+    out["ratio_16_over_3"] = out["fwd_bwd_ms_16"] / out["fwd_bwd_ms_3"]
+    return out
 
 
 def run_bench(quick: bool = False, sizes: list[tuple[int, int]] | None = None,
