@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -478,6 +479,24 @@ def test_bench_fit_phases_add_up_and_instrumentation_is_removed(tmp_path):
         assert phases[name] > 0, name
     assert 0 < out["kernel_share"] < 1 and out["gaussians_start"] == 400
     assert out["channels"]["fwd_bwd_ms_16"] > 0 and out["channels"]["ratio_16_over_3"] > 0
+    # cores busy: CPU time over wall time in the same spans, at most the machine's cores (+ timer slack)
+    assert set(out["cores_busy"]) == set(bench.PHASES)
+    cores = os.cpu_count() or 1
+    for name in ("forward_kernel", "backward_kernel", "loss", "optimizer"):
+        assert 0 < out["cores_busy"][name] <= cores + 0.5, name
+    assert 0 < out["cores_busy_iteration"] <= cores + 0.5
+
+
+def test_bench_fit_phase_arithmetic():
+    """Nested spans are subtracted: render minus its parts is the glue, backward minus its kernel the rest."""
+    from trace3d.training import bench
+
+    per = {"projection": 1.0, "binning": 2.0, "forward_kernel": 3.0, "render": 10.0, "loss": 4.0,
+           "backward_kernel": 5.0, "backward": 12.0, "optimizer": 1.5, "density_control": 0.5}
+    phases = bench._phases(per, 40.0)
+    assert phases["render_glue"] == 4.0 and phases["autograd_rest"] == 7.0
+    assert phases["other"] == 40.0 - (1 + 2 + 3 + 4 + 4 + 5 + 7 + 1.5 + 0.5)
+    assert sum(phases.values()) == pytest.approx(40.0)
 
 
 def test_fit_sweep_runs_the_step_per_budget_and_schedule(tmp_path):

@@ -19,7 +19,9 @@ loop itself is the one the pipeline runs:
 - ``other``: the iteration's remainder (sampling, logging, checks).
 
 Reports ms per iteration for each, ``kernel_share`` = (forward + backward kernel) / iteration and
-``iterations_per_s``. Wall-clock, so the machine's load counts: note it beside any figure.
+``iterations_per_s``; ``cores_busy`` per phase (process CPU time of all threads over wall time in the
+same spans: about 1 for a phase that ran single-threaded, up to the core count) and for the whole
+iteration. Wall-clock, so the machine's load counts: note it beside any figure.
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ class _Clock:
     def __init__(self):
         self.seconds = {k: 0.0 for k in ("projection", "binning", "forward_kernel", "render", "loss",
                                          "backward_kernel", "backward", "optimizer", "density_control")}
+        self.cpu = dict.fromkeys(self.seconds, 0.0)  # process CPU time (all threads) in the same spans
         self.on = False
 
     def wrap(self, key, fn):
@@ -51,10 +54,12 @@ class _Clock:
             if not self.on:
                 return fn(*args, **kwargs)
             start = time.perf_counter()
+            cpu = time.process_time()
             try:
                 return fn(*args, **kwargs)
             finally:
                 self.seconds[key] += time.perf_counter() - start
+                self.cpu[key] += time.process_time() - cpu
 
         return inner
 
@@ -127,11 +132,30 @@ def bench_size(size: tuple[int, int], gaussians: int, iterations: int, warmup: i
     with _instrumented(clock):
         clock.on = True
         start = time.perf_counter()
+        cpu_start = time.process_time()
         result = fit(model.detached_copy(), train, images, params, extent=scene_extent(train), progress=False)
         wall = time.perf_counter() - start
+        cpu = time.process_time() - cpu_start
         clock.on = False
-    per = {k: 1000.0 * v / total for k, v in clock.seconds.items()}
     it_ms = 1000.0 * wall / total
+    phases = _phases({k: 1000.0 * v / total for k, v in clock.seconds.items()}, it_ms)
+    phases_cpu = _phases({k: 1000.0 * v / total for k, v in clock.cpu.items()}, 1000.0 * cpu / total)
+    channels = _channel_cost(model, train[len(train) // 2])
+    return {
+        "channels": channels,
+        "width": size[0], "height": size[1], "views": len(train), "gaussians_start": len(model),
+        "gaussians_end": len(result.model), "iterations": total, "wall_s": wall,
+        "ms_per_iteration": it_ms, "iterations_per_s": 1000.0 / it_ms, "phases_ms": phases,
+        "kernel_share": (phases["forward_kernel"] + phases["backward_kernel"]) / it_ms,
+        # cores busy = process CPU time / wall time, per phase and for the whole iteration (2 = both
+        # cores of a 2-core machine; a phase near 1 ran single-threaded)
+        "cores_busy": {k: (phases_cpu[k] / phases[k] if phases[k] > 1e-3 else None) for k in PHASES},
+        "cores_busy_iteration": cpu / wall,
+    }
+
+
+def _phases(per: dict, it_ms: float) -> dict:
+    """The reported phases from the wrapped spans (ms per iteration; nested spans subtracted)."""
     phases = {
         "projection": per["projection"],
         "binning": per["binning"],
@@ -144,14 +168,7 @@ def bench_size(size: tuple[int, int], gaussians: int, iterations: int, warmup: i
         "density_control": per["density_control"],
     }
     phases["other"] = it_ms - sum(phases.values())
-    channels = _channel_cost(model, train[len(train) // 2])
-    return {
-        "channels": channels,
-        "width": size[0], "height": size[1], "views": len(train), "gaussians_start": len(model),
-        "gaussians_end": len(result.model), "iterations": total, "wall_s": wall,
-        "ms_per_iteration": it_ms, "iterations_per_s": 1000.0 / it_ms, "phases_ms": phases,
-        "kernel_share": (phases["forward_kernel"] + phases["backward_kernel"]) / it_ms,
-    }
+    return phases
 
 
 def _channel_cost(model, camera, repeats: int = 7) -> dict:
