@@ -1,4 +1,4 @@
-"""The fused numba glue kernels (splat frames, SH colours) against their torch twins."""
+"""The fused numba glue kernels (camera points, splat frames, SH colours) against their torch twins."""
 
 import numpy as np
 import pytest
@@ -71,6 +71,58 @@ def test_splat_frames_normals_face_the_camera():
     _, _, normals = gk.splat_frames(q, s, m, z, p_cam, K, R)
     assert bool(((normals * p_cam).sum(-1) <= 0).all())
     torch.testing.assert_close(normals.norm(dim=-1), torch.ones(200, dtype=torch.float64))
+
+
+def _points_inputs(n, dtype, seed=0):
+    """World points around the camera of :func:`_camera`: most in front, some behind or inside the near plane."""
+    g = torch.Generator().manual_seed(seed)
+    cam = _camera(seed)
+    w2c = torch.as_tensor(cam.world_to_camera, dtype=torch.float64)
+    p_cam = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    p_cam[:, 2] = torch.rand(n, generator=g, dtype=torch.float64) * 5 - 0.8  # about 1 in 6 at z <= 0
+    p_cam[:3, 2] = torch.tensor([0.01, 0.0100001, 0.0099999])  # on and beside the near plane
+    means = (p_cam - w2c[:3, 3]) @ w2c[:3, :3]  # camera to world
+    return cam, means.to(dtype).requires_grad_()
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-10), (torch.float32, 2e-4)])
+def test_camera_points_match_torch_twin(dtype, tol):
+    cam, means = _points_inputs(400, dtype)
+    K, R, t = camera_tensors(cam, torch.device("cpu"), dtype)
+    outs = gk.camera_points(means, K, R, t, 0.01)
+    refs = gk.camera_points_torch(means, K, R, t, 0.01)
+    assert not outs[0].requires_grad
+    if dtype == torch.float64:  # the near-plane cases decide the same way in both
+        torch.testing.assert_close(outs[1] == 1.0, refs[1] == 1.0)
+    for a, b in zip(outs, refs):
+        torch.testing.assert_close(a, b, rtol=tol, atol=tol)
+    g = torch.Generator().manual_seed(7)
+    up_z, up_m = (torch.randn(o.shape, generator=g, dtype=torch.float64).to(dtype) for o in outs[1:])
+    # only means2d, only the depth, and both: each upstream path reaches the means
+    for loss_of in (lambda o: (o[2] * up_m).sum(), lambda o: (o[1] * up_z).sum(),
+                    lambda o: (o[1] * up_z).sum() + (o[2] * up_m).sum()):
+        (ga,) = torch.autograd.grad(loss_of(gk.camera_points(means, K, R, t, 0.01)), means)
+        (gb,) = torch.autograd.grad(loss_of(gk.camera_points_torch(means, K, R, t, 0.01)), means)
+        assert float((ga - gb).abs().max()) <= tol * 10 * max(float(gb.abs().max()), 1.0)
+
+
+def test_camera_points_near_plane_is_exclusive():
+    """A centre exactly at z = near is culled (depth 1), as ``project`` culls it; just beyond is kept."""
+    K = torch.tensor([[50.0, 0.0, 20.0], [0.0, 50.0, 15.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    eye, zero = torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64)
+    means = torch.tensor([[0.1, 0.2, 0.01], [0.1, 0.2, 0.0100001], [0.1, 0.2, -1.0]], dtype=torch.float64)
+    for fn in (gk.camera_points, gk.camera_points_torch):
+        _, z_safe, m2d = fn(means, K, eye, zero, 0.01)
+        assert z_safe.tolist() == [1.0, 0.0100001, 1.0]
+        torch.testing.assert_close(m2d[0], torch.tensor([50 * 0.1 + 20 * 0.01, 50 * 0.2 + 15 * 0.01], dtype=torch.float64))
+
+
+def test_camera_points_gradcheck():
+    cam, means = _points_inputs(12, torch.float64, seed=2)
+    K, R, t = camera_tensors(cam, torch.device("cpu"), torch.float64)
+    keep = means.detach()[3:]  # away from the near plane's kink
+    x = keep.clone().requires_grad_()
+    assert torch.autograd.gradcheck(lambda m: gk.camera_points(m, K, R, t, 0.01)[1:], (x,), eps=1e-6, atol=1e-6)
 
 
 def _sh_inputs(n, k, dtype, seed=0):

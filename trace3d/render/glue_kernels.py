@@ -1,9 +1,11 @@
 """Fused numba forward/backward kernels for the per-Gaussian work around the tile kernels.
 
-Two differentiable functions replace chains of small torch operations (each allocating [N, 3, 3] or
+Three differentiable functions replace chains of small torch operations (each allocating [N, 3, 3] or
 [N, 16, 3] temporaries, and each with its own autograd node) by one parallel pass over the Gaussians
 forward and one backward:
 
+- :func:`camera_points`: world centres to camera space, depth and projected centre (``means2d``),
+  the top of :func:`trace3d.render.projection.project`; its torch twin is :func:`camera_points_torch`.
 - :func:`splat_frames`: from quaternions, tangent scales, projected centres and centre depths to the
   ray transforms T, the kernel coefficients (A, B, D) and the camera-facing normals — the part of
   :func:`trace3d.render.projection.project` below the projected centre.  Its torch twin is
@@ -13,7 +15,7 @@ forward and one backward:
   means.  Its torch twin is :func:`trace3d.gaussians.eval_sh` (what ``GaussianModel.colors`` ran
   before).
 
-Both work per Gaussian, so every worker writes only its own rows: race-free and deterministic.
+All work per Gaussian, so every worker writes only its own rows: race-free and deterministic.
 The backward passes skip Gaussians whose upstream gradients are all zero (those the view did not
 render, usually most of them): their gradients are exactly zero.
 Internally float64, inputs and outputs in the caller's dtype (float32 or float64).  CPU only: CUDA
@@ -51,6 +53,106 @@ def use_fused(*tensors: Tensor) -> bool:
 
 def _np(t: Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().numpy())
+
+
+# ----------------------------------------------------------------------------------------------
+# Camera points: means -> camera-space centre, depth, projected centre
+# ----------------------------------------------------------------------------------------------
+
+
+@njit(parallel=True, cache=True)
+def _points_forward(means, K, R, t, near, p_cam, z_safe, m2d):
+    n = means.shape[0]
+    for g in prange(n):
+        x, y, z = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
+        p0 = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
+        p1 = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
+        p2 = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+        p_cam[g, 0], p_cam[g, 1], p_cam[g, 2] = p0, p1, p2
+        zs = p2 if p2 > near else 1.0
+        z_safe[g] = zs
+        m2d[g, 0] = (K[0, 0] * p0 + K[0, 1] * p1 + K[0, 2] * p2) / zs
+        m2d[g, 1] = (K[1, 0] * p0 + K[1, 1] * p1 + K[1, 2] * p2) / zs
+
+
+@njit(parallel=True, cache=True)
+def _points_backward(p_cam, z_safe, K, R, near, g_m2d, g_zs, g_means):
+    n = p_cam.shape[0]
+    for g in prange(n):
+        a0, a1, gz = float(g_m2d[g, 0]), float(g_m2d[g, 1]), float(g_zs[g])
+        if a0 == 0 and a1 == 0 and gz == 0:
+            g_means[g, 0] = g_means[g, 1] = g_means[g, 2] = 0.0
+            continue
+        p0, p1, p2 = float(p_cam[g, 0]), float(p_cam[g, 1]), float(p_cam[g, 2])
+        zs = float(z_safe[g])
+        h0 = K[0, 0] * p0 + K[0, 1] * p1 + K[0, 2] * p2
+        h1 = K[1, 0] * p0 + K[1, 1] * p1 + K[1, 2] * p2
+        d0 = a0 / zs
+        d1 = a1 / zs
+        dzs = gz - (a0 * h0 + a1 * h1) / (zs * zs)
+        # p_cam gradient: K's first two rows against d, plus the depth's where it was used
+        q0 = K[0, 0] * d0 + K[1, 0] * d1
+        q1 = K[0, 1] * d0 + K[1, 1] * d1
+        q2 = K[0, 2] * d0 + K[1, 2] * d1
+        if p2 > near:
+            q2 += dzs
+        g_means[g, 0] = R[0, 0] * q0 + R[1, 0] * q1 + R[2, 0] * q2
+        g_means[g, 1] = R[0, 1] * q0 + R[1, 1] * q1 + R[2, 1] * q2
+        g_means[g, 2] = R[0, 2] * q0 + R[1, 2] * q1 + R[2, 2] * q2
+
+
+class _CameraPoints(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, K, R, t, near):
+        n = means.shape[0]
+        dt = np.float64 if means.dtype == torch.float64 else np.float32
+        p_cam, z_safe, m2d = np.empty((n, 3), dt), np.empty(n, dt), np.empty((n, 2), dt)
+        if n:
+            _points_forward(_np(means), K, R, t, near, p_cam, z_safe, m2d)
+        ctx.saved = (p_cam, z_safe, K, R, near)
+        p_cam_t = torch.from_numpy(p_cam)
+        ctx.mark_non_differentiable(p_cam_t)
+        return p_cam_t, torch.from_numpy(z_safe), torch.from_numpy(m2d)
+
+    @staticmethod
+    def backward(ctx, g_pcam, g_zs, g_m2d):
+        p_cam, z_safe, K, R, near = ctx.saved
+        n, dt = p_cam.shape[0], p_cam.dtype
+
+        def grad(t, shape):
+            return np.zeros(shape, dt) if t is None else np.ascontiguousarray(t.detach().numpy().astype(dt, copy=False))
+
+        g_means = np.empty((n, 3), dt)
+        if n:
+            _points_backward(p_cam, z_safe, K, R, near, grad(g_m2d, (n, 2)), grad(g_zs, (n,)), g_means)
+        return torch.from_numpy(g_means), None, None, None, None
+
+
+def camera_points(means: Tensor, K: Tensor, rot_cw: Tensor, t_cw: Tensor, near: float
+                  ) -> tuple[Tensor, Tensor, Tensor]:
+    """Camera-space centres, safe depths and projected centres of world points.
+
+    Args:
+        means: [N, 3] world centres; K: [3, 3] intrinsics (last row 0, 0, 1); rot_cw [3, 3], t_cw [3]:
+            world to camera; near: centres with camera z <= near get depth 1 in ``z_safe`` (culled later).
+    Returns:
+        p_cam [N, 3] (not differentiable), z_safe [N] and means2d [N, 2] = (K p_cam)[:2] / z_safe,
+        both differentiable w.r.t. ``means`` (numba on the CPU, else :func:`camera_points_torch`).
+    """
+    if not use_fused(means):
+        return camera_points_torch(means, K, rot_cw, t_cw, near)
+    as64 = lambda a: np.ascontiguousarray(a.detach().cpu().double().numpy())  # noqa: E731
+    return _CameraPoints.apply(means, as64(K), as64(rot_cw), as64(t_cw), float(near))
+
+
+def camera_points_torch(means: Tensor, K: Tensor, rot_cw: Tensor, t_cw: Tensor, near: float
+                        ) -> tuple[Tensor, Tensor, Tensor]:
+    """The torch twin of :func:`camera_points` (plain autograd)."""
+    p_cam = means @ rot_cw.T + t_cw
+    z = p_cam[:, 2]
+    z_safe = torch.where(z > near, z, torch.ones_like(z))
+    pix_h = p_cam @ K.T  # third component is z (K's last row is 0, 0, 1)
+    return p_cam.detach(), z_safe, pix_h[:, :2] / z_safe[:, None]
 
 
 # ----------------------------------------------------------------------------------------------

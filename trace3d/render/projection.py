@@ -37,7 +37,7 @@ from torch import Tensor
 from ..errors import Trace3DError
 from ..geometry import quat_to_rotmat  # noqa: F401  (re-exported by trace3d.render)
 from ..scene import Camera
-from .glue_kernels import splat_frames
+from .glue_kernels import camera_points, splat_frames
 
 ALPHA_MIN = 1.0 / 255.0  # skip a pair whose alpha is below this
 ALPHA_MAX = 0.99  # clamp alpha
@@ -126,20 +126,18 @@ def project(splats: Splats, camera: Camera, near: float = 0.01) -> Projected:
     check_splats(splats)
     means = splats.means
     K, rot_cw, t_cw = camera_tensors(camera, means.device, means.dtype)
-    p_cam = means @ rot_cw.T + t_cw  # [N, 3]
+    # camera-space centres (no gradient), depths (1 where culled) and projected centres; T's third
+    # column is K p_c = z (means2d, 1)
+    p_cam, z_safe, means2d = camera_points(means, K, rot_cw, t_cw, near)
     z = p_cam[:, 2]
     in_front = z > near
-    z_safe = torch.where(in_front, z, torch.ones_like(z))
-    # projected centre; T's third column is K p_c = z (means2d, 1)
-    pix_h = p_cam @ K.T
-    means2d = pix_h[:, :2] / z_safe[:, None]
     ray_t, coeffs, normal = splat_frames(splats.quats, splats.scales, means2d, z_safe, p_cam, K, rot_cw)
 
     boxes = footprint_boxes_fast(ray_t.detach(), means2d.detach(), splats.opacities.detach(), in_front,
                                  camera.width, camera.height, near)
     visible = in_front & torch.as_tensor((boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1]),
                                          device=means.device)
-    return Projected(ray_t, coeffs, means2d, normal, z.detach(), splats.opacities, boxes, visible)
+    return Projected(ray_t, coeffs, means2d, normal, z, splats.opacities, boxes, visible)
 
 
 
