@@ -153,6 +153,42 @@ class TestSSIM:
         b = torch.rand(5, 6, 1, generator=g, dtype=torch.float64)
         assert torch.autograd.gradcheck(lambda x: ssim(x, b), (a,))
 
+    @pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-12), (torch.float32, 2e-6)])
+    @pytest.mark.parametrize("size", [(37, 52, 3), (7, 9, 3), (4, 3, 1), (11, 30, 5)])
+    def test_fused_kernel_matches_torch_twin_with_gradients(self, dtype, tol, size):
+        """The numba SSIM of the training loss against the torch ssim: value and image gradient,
+        images smaller than the window included."""
+        from trace3d.loss_kernels import fused_ssim
+
+        g = torch.Generator().manual_seed(sum(size))
+        a = torch.rand(size, generator=g, dtype=dtype).requires_grad_()
+        b = (a.detach() * 0.6 + 0.4 * torch.rand(size, generator=g, dtype=dtype)).clamp(0, 1)
+        fused, twin = fused_ssim(a, b), ssim(a, b)
+        assert fused.dtype == dtype
+        assert float(fused) == pytest.approx(float(twin), abs=tol * 10)
+        (g_fused,) = torch.autograd.grad(fused * 3.0, a)
+        (g_twin,) = torch.autograd.grad(twin * 3.0, a)
+        assert float((g_fused - g_twin).abs().max()) <= tol * float(g_twin.abs().max()) * 10
+
+    def test_fused_kernel_gradcheck_and_where_it_applies(self):
+        from trace3d.loss_kernels import fused_ssim, fused_ssim_applies
+        from trace3d.render.glue_kernels import set_fused
+
+        g = torch.Generator().manual_seed(3)
+        a = torch.rand(6, 13, 2, generator=g, dtype=torch.float64, requires_grad=True)
+        b = torch.rand(6, 13, 2, generator=g, dtype=torch.float64)
+        assert torch.autograd.gradcheck(lambda x: fused_ssim(x, b), (a,))
+        assert fused_ssim_applies(a, b)
+        assert not fused_ssim_applies(a[None], b[None])  # batches take the torch path
+        assert not fused_ssim_applies(a, b.float())
+        with pytest.raises(ValueError, match="fused_ssim"):
+            fused_ssim(a[None], b[None])
+        set_fused(False)
+        try:
+            assert not fused_ssim_applies(a, b)
+        finally:
+            set_fused(True)
+
     def test_photometric_loss_weights(self):
         a = torch.zeros(16, 16, 3)
         b = torch.full((16, 16, 3), 0.5)

@@ -5,7 +5,8 @@ Images are ``[H, W, C]`` tensors (channels last, as the renderer returns them) w
 
 - :func:`ssim`: structural similarity with an 11x11 Gaussian window (sigma 1.5), the 3DGS/2DGS
   training loss formulation (zero-padded "same" convolution, constants C1 = 0.01^2, C2 = 0.03^2).
-- :func:`photometric_loss`: ``(1 - lambda_dssim) * L1 + lambda_dssim * (1 - SSIM)`` (2DGS: 0.2).
+- :func:`photometric_loss`: ``(1 - lambda_dssim) * L1 + lambda_dssim * (1 - SSIM)`` (2DGS: 0.2); on
+  the CPU its SSIM is the fused numba kernel of :mod:`trace3d.loss_kernels` (:func:`ssim` is its twin).
 - :func:`normal_consistency_loss`: the 2DGS regulariser ``mean(1 - <n_rendered, alpha * N_depth>)``.
 - :func:`psnr`.
 """
@@ -19,6 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from .geometry import depth_to_normal, depth_to_points  # noqa: F401  (their home is trace3d.geometry; kept importable here)
+from .loss_kernels import fused_ssim, fused_ssim_applies
 
 SSIM_C1 = 0.01**2
 SSIM_C2 = 0.03**2
@@ -116,7 +118,7 @@ def photometric_loss(
         (loss, l1, ssim) scalars.
     """
     l1 = l1_loss(image, target)
-    s = ssim(image, target)
+    s = fused_ssim(image, target) if fused_ssim_applies(image, target) else ssim(image, target)
     return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - s), l1, s
 
 
