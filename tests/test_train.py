@@ -229,6 +229,47 @@ class TestDepthNormal:
         assert float(normal_consistency_loss(n, n, alpha)) == pytest.approx(0.0, abs=1e-6)
         assert float(normal_consistency_loss(n, -n, alpha)) == pytest.approx(2.0, abs=1e-6)
 
+    @staticmethod
+    def _normal_inputs(h, w, dtype, seed=0):
+        g = torch.Generator().manual_seed(seed)
+        depth = (torch.rand(h, w, generator=g, dtype=dtype) * 0.3 + 2.0).requires_grad_()
+        rn = torch.nn.functional.normalize(torch.randn(h, w, 3, generator=g, dtype=dtype), dim=-1).requires_grad_()
+        alpha = torch.rand(h, w, generator=g, dtype=dtype)
+        K = np.array([[50.0, 0.4, w / 2], [0, 48.0, h / 2], [0, 0, 1]])  # with skew
+        return rn, depth, alpha, K
+
+    @pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+    @pytest.mark.parametrize("size", [(23, 31), (3, 3), (2, 6), (6, 1)])
+    def test_fused_normal_consistency_matches_torch_twin(self, dtype, tol, size):
+        """The numba term against depth_to_normal + normal_consistency_loss: value and both gradients."""
+        from trace3d.loss_kernels import fused_normal_consistency
+
+        rn, depth, alpha, K = self._normal_inputs(*size, dtype)
+        fused = fused_normal_consistency(rn, depth, alpha, K)
+        twin = normal_consistency_loss(rn, depth_to_normal(depth, K), alpha)
+        assert fused.dtype == dtype and float(fused) == pytest.approx(float(twin), abs=tol * 10)
+        g_fused = torch.autograd.grad(fused * 1.7, (rn, depth))
+        g_twin = torch.autograd.grad(twin * 1.7, (rn, depth))
+        for a, b in zip(g_fused, g_twin):
+            assert a.dtype == dtype
+            assert float((a - b).abs().max()) <= tol * max(float(b.abs().max()), 1e-3) * 10
+
+    def test_fused_normal_consistency_gradcheck_and_dispatch(self):
+        from trace3d.losses import depth_normal_consistency
+        from trace3d.loss_kernels import fused_normal_consistency
+        from trace3d.render.glue_kernels import set_fused
+
+        rn, depth, alpha, K = self._normal_inputs(5, 6, torch.float64, seed=4)
+        assert torch.autograd.gradcheck(lambda n, d: fused_normal_consistency(n, d, alpha, K), (rn, depth))
+        set_fused(False)
+        try:
+            twin = depth_normal_consistency(rn, depth, alpha, K)  # the torch composition
+        finally:
+            set_fused(True)
+        assert float(depth_normal_consistency(rn, depth, alpha, K)) == pytest.approx(float(twin), abs=1e-12)
+        with pytest.raises(ValueError, match="fused_normal_consistency"):
+            fused_normal_consistency(rn[None], depth, alpha, K)
+
 
 # ----------------------------------------------------------------------------------------------
 # Schedule and parameters

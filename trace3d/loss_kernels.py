@@ -1,4 +1,5 @@
-"""Fused numba SSIM (forward + analytic backward) for the training loss.
+"""Fused numba loss kernels (forward + analytic backward) for the training loss: SSIM, and the
+normal-consistency term with the depth map's normals (at the end of this module).
 
 :func:`trace3d.losses.ssim` in torch builds five statistics maps, blurs them with two grouped 1D
 convolutions and combines them in about twenty elementwise operations, each a full-image temporary
@@ -190,3 +191,162 @@ def fused_ssim(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
                          f"{target.dtype}")
     return _FusedSSIM.apply(image, target)
 
+
+
+# ----------------------------------------------------------------------------------------------
+# Normal consistency against the depth map's normals
+# ----------------------------------------------------------------------------------------------
+#
+# L = mean_x (1 - <n_r(x), alpha(x) N(x)>), N = normalize(dP/dy x dP/dx) by central differences of
+# the back-projected depth (zero on the one-pixel border), alpha without gradient.  Backward with
+# u = -alpha n_r / HW (dL/dN), c = a x b (a = dP/dy, b = dP/dx):
+#   dL/dc = (u - N <N, u>) / max(|c|, eps),  dL/da = b x dL/dc,  dL/db = dL/dc x a,
+# gathered to each pixel's point from its four neighbours' differences, then dL/ddepth = <ray, dL/dP>.
+
+_NORMALIZE_EPS = 1e-12  # torch.nn.functional.normalize's default
+
+
+@njit(cache=True, inline="always")
+def _ray(K, i, j):
+    ry = (i + 0.5 - K[1, 2]) / K[1, 1]
+    rx = (j + 0.5 - K[0, 2] - K[0, 1] * ry) / K[0, 0]
+    return rx, ry
+
+
+@njit(parallel=True, cache=True)
+def _normal_forward(rnormal, depth, alpha, K, normals, clen, row_sums):
+    h, w = depth.shape
+    for i in prange(1, h - 1):
+        acc = 0.0
+        for j in range(1, w - 1):
+            # b = P[i, j+1] - P[i, j-1], a = P[i+1, j] - P[i-1, j]
+            rx1, ry1 = _ray(K, i, j + 1)
+            rx0, ry0 = _ray(K, i, j - 1)
+            d1, d0 = float(depth[i, j + 1]), float(depth[i, j - 1])
+            b0, b1, b2 = rx1 * d1 - rx0 * d0, ry1 * d1 - ry0 * d0, d1 - d0
+            rx3, ry3 = _ray(K, i + 1, j)
+            rx2, ry2 = _ray(K, i - 1, j)
+            d3, d2 = float(depth[i + 1, j]), float(depth[i - 1, j])
+            a0, a1, a2 = rx3 * d3 - rx2 * d2, ry3 * d3 - ry2 * d2, d3 - d2
+            c0 = a1 * b2 - a2 * b1
+            c1 = a2 * b0 - a0 * b2
+            c2 = a0 * b1 - a1 * b0
+            n = max(np.sqrt(c0 * c0 + c1 * c1 + c2 * c2), _NORMALIZE_EPS)
+            normals[i, j, 0], normals[i, j, 1], normals[i, j, 2] = c0 / n, c1 / n, c2 / n
+            clen[i, j] = n
+            acc += float(alpha[i, j]) * (float(rnormal[i, j, 0]) * c0 + float(rnormal[i, j, 1]) * c1
+                                         + float(rnormal[i, j, 2]) * c2) / n
+        row_sums[i] = acc
+
+
+@njit(parallel=True, cache=True)
+def _normal_backward(rnormal, depth, alpha, K, normals, clen, scale, g_rnormal, g_depth, g_a, g_b):
+    """scale = upstream / (H W).  g_a, g_b: [H, W, 3] scratch (zero on the border)."""
+    h, w = depth.shape
+    for i in prange(h):
+        for j in range(w):
+            interior = 0 < i < h - 1 and 0 < j < w - 1
+            for k in range(3):
+                g_a[i, j, k] = 0.0
+                g_b[i, j, k] = 0.0
+                g_rnormal[i, j, k] = 0.0
+            if not interior:
+                continue
+            al = float(alpha[i, j])
+            n0, n1, n2 = float(normals[i, j, 0]), float(normals[i, j, 1]), float(normals[i, j, 2])
+            g_rnormal[i, j, 0] = -scale * al * n0
+            g_rnormal[i, j, 1] = -scale * al * n1
+            g_rnormal[i, j, 2] = -scale * al * n2
+            u0 = -scale * al * float(rnormal[i, j, 0])
+            u1 = -scale * al * float(rnormal[i, j, 1])
+            u2 = -scale * al * float(rnormal[i, j, 2])
+            n = float(clen[i, j])
+            if n > _NORMALIZE_EPS:
+                dot = n0 * u0 + n1 * u1 + n2 * u2
+                gc0, gc1, gc2 = (u0 - n0 * dot) / n, (u1 - n1 * dot) / n, (u2 - n2 * dot) / n
+            else:
+                gc0, gc1, gc2 = u0 / n, u1 / n, u2 / n
+            rx1, ry1 = _ray(K, i, j + 1)
+            rx0, ry0 = _ray(K, i, j - 1)
+            d1, d0 = float(depth[i, j + 1]), float(depth[i, j - 1])
+            b0, b1, b2 = rx1 * d1 - rx0 * d0, ry1 * d1 - ry0 * d0, d1 - d0
+            rx3, ry3 = _ray(K, i + 1, j)
+            rx2, ry2 = _ray(K, i - 1, j)
+            d3, d2 = float(depth[i + 1, j]), float(depth[i - 1, j])
+            a0, a1, a2 = rx3 * d3 - rx2 * d2, ry3 * d3 - ry2 * d2, d3 - d2
+            # dL/da = b x g_c, dL/db = g_c x a
+            g_a[i, j, 0] = b1 * gc2 - b2 * gc1
+            g_a[i, j, 1] = b2 * gc0 - b0 * gc2
+            g_a[i, j, 2] = b0 * gc1 - b1 * gc0
+            g_b[i, j, 0] = gc1 * a2 - gc2 * a1
+            g_b[i, j, 1] = gc2 * a0 - gc0 * a2
+            g_b[i, j, 2] = gc0 * a1 - gc1 * a0
+    for i in prange(h):
+        for j in range(w):
+            # P[i, j] is +b of (i, j-1), -b of (i, j+1), +a of (i-1, j), -a of (i+1, j)
+            p0 = p1 = p2 = 0.0
+            if j >= 1:
+                p0 += g_b[i, j - 1, 0]
+                p1 += g_b[i, j - 1, 1]
+                p2 += g_b[i, j - 1, 2]
+            if j + 1 < w:
+                p0 -= g_b[i, j + 1, 0]
+                p1 -= g_b[i, j + 1, 1]
+                p2 -= g_b[i, j + 1, 2]
+            if i >= 1:
+                p0 += g_a[i - 1, j, 0]
+                p1 += g_a[i - 1, j, 1]
+                p2 += g_a[i - 1, j, 2]
+            if i + 1 < h:
+                p0 -= g_a[i + 1, j, 0]
+                p1 -= g_a[i + 1, j, 1]
+                p2 -= g_a[i + 1, j, 2]
+            rx, ry = _ray(K, i, j)
+            g_depth[i, j] = rx * p0 + ry * p1 + p2
+
+
+class _FusedNormalConsistency(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, rendered_normal, depth, alpha, K):
+        h, w = depth.shape
+        rn, dp, al = (np.ascontiguousarray(t.detach().numpy()) for t in (rendered_normal, depth, alpha))
+        normals = np.zeros((h, w, 3), np.float64)
+        clen = np.zeros((h, w), np.float64)
+        row_sums = np.zeros(h, np.float64)
+        if h > 2 and w > 2:
+            _normal_forward(rn, dp, al, K, normals, clen, row_sums)
+        ctx.saved = (rn, dp, al, K, normals, clen)
+        ctx.dtypes = (rendered_normal.dtype, depth.dtype)
+        return torch.tensor(1.0 - float(row_sums.sum()) / (h * w), dtype=rendered_normal.dtype)
+
+    @staticmethod
+    def backward(ctx, g_out):
+        rn, dp, al, K, normals, clen = ctx.saved
+        h, w = dp.shape
+        g_rn = np.empty((h, w, 3), np.float64)
+        g_dp = np.empty((h, w), np.float64)
+        _normal_backward(rn, dp, al, K, normals, clen, float(g_out) / (h * w), g_rn, g_dp,
+                         np.empty((h, w, 3), np.float64), np.empty((h, w, 3), np.float64))
+        rdt, ddt = ctx.dtypes
+        return torch.from_numpy(g_rn).to(rdt), torch.from_numpy(g_dp).to(ddt), None, None
+
+
+def fused_normal_consistency_applies(rendered_normal: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor) -> bool:
+    """Whether :func:`fused_normal_consistency` handles these inputs ([H, W, 3], [H, W], [H, W] CPU
+    float32/float64, the fused kernels switched on)."""
+    from .render.glue_kernels import use_fused
+
+    return (depth.ndim == 2 and rendered_normal.shape == (*depth.shape, 3) and alpha.shape == depth.shape
+            and use_fused(rendered_normal, depth, alpha))
+
+
+def fused_normal_consistency(rendered_normal: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor,
+                             K) -> torch.Tensor:
+    """``normal_consistency_loss(rendered_normal, depth_to_normal(depth, K), alpha)`` in one numba pass
+    forward and one backward (differentiable w.r.t. the rendered normal and the depth; alpha is
+    treated as detached, as there).  Its twin is that torch composition."""
+    if not fused_normal_consistency_applies(rendered_normal, depth, alpha):
+        raise ValueError(f"fused_normal_consistency: needs [H, W, 3], [H, W], [H, W] CPU float32/64 tensors, got "
+                         f"{tuple(rendered_normal.shape)}, {tuple(depth.shape)}, {tuple(alpha.shape)}")
+    Kn = np.ascontiguousarray(np.asarray(K.detach().cpu() if torch.is_tensor(K) else K, dtype=np.float64))
+    return _FusedNormalConsistency.apply(rendered_normal, depth, alpha.detach(), Kn)

@@ -7,7 +7,9 @@ Images are ``[H, W, C]`` tensors (channels last, as the renderer returns them) w
   training loss formulation (zero-padded "same" convolution, constants C1 = 0.01^2, C2 = 0.03^2).
 - :func:`photometric_loss`: ``(1 - lambda_dssim) * L1 + lambda_dssim * (1 - SSIM)`` (2DGS: 0.2); on
   the CPU its SSIM is the fused numba kernel of :mod:`trace3d.loss_kernels` (:func:`ssim` is its twin).
-- :func:`normal_consistency_loss`: the 2DGS regulariser ``mean(1 - <n_rendered, alpha * N_depth>)``.
+- :func:`normal_consistency_loss`: the 2DGS regulariser ``mean(1 - <n_rendered, alpha * N_depth>)``;
+  :func:`depth_normal_consistency` takes the depth map itself (fused numba kernel on the CPU, the
+  torch composition ``depth_to_normal`` + :func:`normal_consistency_loss` as its twin elsewhere).
 - :func:`psnr`.
 """
 
@@ -20,7 +22,8 @@ import torch
 import torch.nn.functional as F
 
 from .geometry import depth_to_normal, depth_to_points  # noqa: F401  (their home is trace3d.geometry; kept importable here)
-from .loss_kernels import fused_ssim, fused_ssim_applies
+from .loss_kernels import (fused_normal_consistency, fused_normal_consistency_applies, fused_ssim,
+                           fused_ssim_applies)
 
 SSIM_C1 = 0.01**2
 SSIM_C2 = 0.03**2
@@ -152,3 +155,12 @@ def normal_consistency_loss(
     """
     weighted = surface_normal * alpha.detach()[..., None]
     return (1.0 - (rendered_normal * weighted).sum(dim=-1)).mean()
+
+
+def depth_normal_consistency(rendered_normal: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor,
+                             K: np.ndarray | torch.Tensor) -> torch.Tensor:
+    """:func:`normal_consistency_loss` against the normals of ``depth`` ([H, W], camera z) under
+    intrinsics ``K``: the fused numba kernel on the CPU, else ``depth_to_normal`` + the torch loss."""
+    if fused_normal_consistency_applies(rendered_normal, depth, alpha):
+        return fused_normal_consistency(rendered_normal, depth, alpha, K)
+    return normal_consistency_loss(rendered_normal, depth_to_normal(depth, K), alpha)

@@ -73,8 +73,8 @@ def _instrumented(clock: _Clock):
     patches = [
         (core, "project", "projection"), (kernels, "forward_kernel", "forward_kernel"),
         (kernels, "backward_kernel", "backward_kernel"), (loop, "render_view", "render"),
-        (loop, "photometric_loss", "loss"), (loop, "normal_consistency_loss", "loss"),
-        (loop, "depth_to_normal", "loss"), (optimizer.GaussianOptimizer, "step", "optimizer"),
+        (loop, "photometric_loss", "loss"), (loop, "depth_normal_consistency", "loss"),
+        (optimizer.GaussianOptimizer, "step", "optimizer"),
         (strategy.DefaultStrategy, "after_backward", "density_control"),
         (strategy.DefaultStrategy, "after_step", "density_control"),
         (torch.Tensor, "backward", "backward"),

@@ -43,8 +43,7 @@ from tqdm import tqdm
 
 from ..errors import ConfigError, Trace3DError
 from ..gaussians import GaussianModel
-from ..geometry import depth_to_normal
-from ..losses import normal_consistency_loss, photometric_loss, psnr, ssim
+from ..losses import depth_normal_consistency, photometric_loss, psnr, ssim
 from ..scene import Camera
 from .optimizer import GaussianOptimizer, learning_rates
 from .params import TrainParams
@@ -251,8 +250,7 @@ def _fit_loop(model: GaussianModel, cameras: Sequence[Camera], images: list[torc
             covered = out.alpha > 1e-6
             expected = torch.where(covered, out.depth / out.alpha.clamp_min(1e-6), torch.zeros_like(out.depth))
             surface_depth = expected * (1.0 - params.depth_ratio) + out.median_depth * params.depth_ratio
-            surface_normal = depth_to_normal(surface_depth, camera.K)
-            normal_term = normal_consistency_loss(out.normal, surface_normal, out.alpha)
+            normal_term = depth_normal_consistency(out.normal, surface_depth, out.alpha, camera.K)
             loss = loss + lambda_normal * normal_term
         if lambda_dist > 0:
             dist_term = out.distortion.mean()
