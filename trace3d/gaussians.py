@@ -314,12 +314,14 @@ class GaussianModel:
         return self.rotations[:, :, 2]
 
     def splats(self) -> "Splats":
-        """The activated Gaussians for :func:`trace3d.render.render` (differentiable)."""
+        """The activated Gaussians for :func:`trace3d.render.render` (differentiable).  The raw
+        quaternions go in as they are: the projection normalises them (inside its fused kernel on the
+        CPU), so a separate normalisation here would only add two passes and an autograd node."""
         from .render import Splats
 
         return Splats(
             means=self.means,
-            quats=F.normalize(self.quats, dim=-1),
+            quats=self.quats,
             scales=self.scales,
             opacities=self.opacities,
         )
