@@ -535,3 +535,16 @@ class TestEdgeCases:
         (out.features[..., 0] * weight).sum().backward()
         g = out.means2d.grad[0]
         assert g[0] > 0 and abs(float(g[1])) < 1e-2 * float(g[0])
+
+
+@pytest.mark.parametrize("n_chunks", [1, 2, 3])
+def test_backward_chunk_sum_matches_numpy(n_chunks):
+    """The backward's per-worker buffers, summed and split in one numba pass, against numpy's sum."""
+    from trace3d.render.kernels import GEOM_GRAD_COLS, sum_chunks
+
+    grads = np.random.default_rng(n_chunks).normal(size=(n_chunks, 57, GEOM_GRAD_COLS + 4)).astype(np.float32)
+    g_geom, g_vals = sum_chunks(grads)
+    total = grads.sum(axis=0)
+    np.testing.assert_allclose(g_geom, total[:, :GEOM_GRAD_COLS], rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(g_vals, total[:, GEOM_GRAD_COLS:], rtol=1e-6, atol=1e-6)
+    assert g_geom.flags.c_contiguous and g_vals.shape == (57, 4)

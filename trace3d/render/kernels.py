@@ -768,6 +768,25 @@ def _f32(t: Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
 
 
+@njit(parallel=True, cache=True)
+def sum_chunks(grads):
+    """The backward kernel's per-chunk buffers [n_chunks, N, 15 + K] summed in chunk order and split
+    into the geometry [N, 15] and value [N, K] gradients, in one parallel pass over the rows."""
+    n_chunks, n, cols = grads.shape
+    g_geom = np.empty((n, GEOM_GRAD_COLS), np.float32)
+    g_vals = np.empty((n, cols - GEOM_GRAD_COLS), np.float32)
+    for g in prange(n):
+        for c in range(cols):
+            acc = grads[0, g, c]
+            for k in range(1, n_chunks):
+                acc += grads[k, g, c]
+            if c < GEOM_GRAD_COLS:
+                g_geom[g, c] = acc
+            else:
+                g_vals[g, c - GEOM_GRAD_COLS] = acc
+    return g_geom, g_vals
+
+
 class _Rasterize(torch.autograd.Function):
     @staticmethod
     def forward(ctx, geom15: Tensor, vals: Tensor, binning: Binning, near: float):
@@ -804,10 +823,10 @@ class _Rasterize(torch.autograd.Function):
                                 float(ctx.near), n_chunks, final_t, depth_ref, last, median_at,
                                 arr(v_acc, (h, w, k)), arr(v_z, (h, w)), arr(v_z2, (h, w)),
                                 arr(v_final_t, (h, w)), arr(v_median, (h, w)))
-        total = grads.sum(axis=0) if n_chunks > 1 else grads[0]
+        g_geom_np, g_vals_np = sum_chunks(grads)
         gdt, vdt, dev = ctx.in_dtype
-        g_geom = torch.from_numpy(np.ascontiguousarray(total[:, :GEOM_GRAD_COLS])).to(device=dev, dtype=gdt)
-        g_vals = torch.from_numpy(np.ascontiguousarray(total[:, GEOM_GRAD_COLS:])).to(device=dev, dtype=vdt)
+        g_geom = torch.from_numpy(g_geom_np).to(device=dev, dtype=gdt)
+        g_vals = torch.from_numpy(g_vals_np).to(device=dev, dtype=vdt)
         return g_geom, g_vals, None, None
 
 
