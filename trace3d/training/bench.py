@@ -210,7 +210,11 @@ def run_bench(quick: bool = False, sizes: list[tuple[int, int]] | None = None,
         raise ValueError(f"bench fit: iterations must be >= 1, got {iterations}")
     views = 6 if quick else 24
     sizes = [(160, 120), (504, 378)] if sizes is None else list(sizes)
-    out = {"torch_threads": torch.get_num_threads(), "numba_threads": numba.get_num_threads(),
+    from .params import TrainParams
+
+    # torch_threads: the process's; the fit itself runs torch with TrainParams.torch_threads
+    out = {"torch_threads": torch.get_num_threads(), "fit_torch_threads": TrainParams().torch_threads,
+           "numba_threads": numba.get_num_threads(),
            "gaussians": gaussians, "quick": quick, "fused_glue": fused_enabled(), "sizes": {}}
     with tempfile.TemporaryDirectory(prefix="trace3d-bench-fit-") as tmp:
         for size in sizes:
