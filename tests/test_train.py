@@ -594,6 +594,29 @@ def test_fit_sweep_runs_the_step_per_budget_and_schedule(tmp_path):
     assert plot.stat().st_size > 1000
 
 
+def test_fit_sweep_merge_keeps_rows_in_order_and_names_a_bad_file(tmp_path):
+    from trace3d.cli import main
+    from trace3d.training import bench
+
+    row = {"room": "r", "max_gaussians": 10, "schedule_scale": 0.1, "iterations": 30, "test_psnr": 20.0,
+           "minutes": 1.0, "train_minutes": 0.9, "gaussians": 10}
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    a.write_text(json.dumps({"rows": [row, {**row, "schedule_scale": 0.2, "iterations": 60, "test_psnr": 22.0,
+                                                     "minutes": 2.0}], "load_average": [1.0, 1.0, 1.0]}))
+    b.write_text(json.dumps({"rows": [{**row, "max_gaussians": 20, "test_psnr": 21.0}], "load_average": [2.0, 2.0, 2.0]}))
+    merged = bench.merge_sweeps([a, b], tmp_path / "m.png")
+    assert [(r["max_gaussians"], r["schedule_scale"]) for r in merged["rows"]] == [(10, 0.1), (10, 0.2), (20, 0.1)]
+    assert [r["load_average"][0] for r in merged["rows"]] == [1.0, 1.0, 2.0]
+    assert (tmp_path / "m.png").stat().st_size > 1000
+    bad = tmp_path / "bad.json"
+    bad.write_text("{}")
+    with pytest.raises(Trace3DError, match="bad.json: not a fit-sweep result"):
+        bench.merge_sweeps([a, bad])
+    # the command line: --merge instead of --rooms
+    assert main(["bench", "fit-sweep", "--merge", str(a), str(b), "--out", str(tmp_path / "o.json")]) == 0
+    assert len(json.loads((tmp_path / "o.json").read_text())["rows"]) == 3
+
+
 def test_bench_fit_compare_and_baseline_checks(tmp_path):
     from trace3d.training import bench
 

@@ -275,10 +275,16 @@ def _cmd_bench(args: argparse.Namespace) -> None:
     elif args.name == "fit-sweep":
         from .training.bench import run_sweep
 
-        if not args.room_list:
-            raise Trace3DError("bench fit-sweep: give at least one --rooms folder (a fitted room's results folder).")
-        result = run_sweep([Path(r) for r in args.room_list], [int(b) for b in args.budgets],
-                           [float(x) for x in args.scales], Path(args.plot) if args.plot else None)
+        if args.merge:
+            from .training.bench import merge_sweeps
+
+            result = merge_sweeps([Path(f) for f in args.merge], Path(args.plot) if args.plot else None)
+        else:
+            if not args.room_list:
+                raise Trace3DError("bench fit-sweep: give at least one --rooms folder (a fitted room's results "
+                                   "folder), or --merge earlier sweeps' JSON files.")
+            result = run_sweep([Path(r) for r in args.room_list], [int(b) for b in args.budgets],
+                               [float(x) for x in args.scales], Path(args.plot) if args.plot else None)
     elif args.name == "trace":
         from .tracing.bench import run_bench
 
@@ -489,6 +495,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fit-sweep: Gaussian budgets (max_gaussians)")
     p.add_argument("--scales", nargs="+", default=["0.05", "0.1"],
                    help="fit-sweep: schedule scales (0.1 = 3,000 iterations)")
+    p.add_argument("--merge", nargs="+", metavar="JSON",
+                   help="fit-sweep: no fitting; merge these earlier sweeps' --out files (rows in order) and plot them")
     p.add_argument("--plot", help="fit-sweep: PNG of test PSNR against minutes")
     p.add_argument("--out", help="also write the JSON here")
     p.set_defaults(func=_cmd_bench)

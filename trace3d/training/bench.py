@@ -268,6 +268,26 @@ def run_sweep(rooms: list[Path], budgets: list[int], scales: list[float], out_pl
     return result
 
 
+def merge_sweeps(files: list[Path], out_plot: Path | None = None) -> dict:
+    """The rows of several :func:`run_sweep` results (their JSON files, in order) as one result, with
+    each file's load average kept per row; optionally plotted.  A sweep run in parts (more
+    points added later) is plotted from its files, not retyped."""
+    from ..errors import Trace3DError
+
+    rows = []
+    for f in files:
+        try:
+            part = json.loads(Path(f).read_text())
+            part_rows = part["rows"]
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise Trace3DError(f"{f}: not a fit-sweep result (JSON with 'rows'): {err}") from err
+        rows += [{**r, "load_average": part.get("load_average")} for r in part_rows]
+    result = {"rows": rows, "merged_from": [str(f) for f in files]}
+    if out_plot is not None:
+        plot_sweep(rows, Path(out_plot))
+    return result
+
+
 def plot_sweep(rows: list[dict], path: Path) -> None:
     """Test PSNR against fit minutes: one line per (room, budget) through its iteration counts."""
     import matplotlib
