@@ -213,21 +213,27 @@ def _ray(K, i, j):
     return rx, ry
 
 
+@njit(cache=True, inline="always")
+def _differences(K, depth, i, j):
+    """Central differences of the back-projected points at interior pixel (i, j):
+    a = P[i+1, j] - P[i-1, j], b = P[i, j+1] - P[i, j-1]."""
+    rx1, ry1 = _ray(K, i, j + 1)
+    rx0, ry0 = _ray(K, i, j - 1)
+    d1, d0 = float(depth[i, j + 1]), float(depth[i, j - 1])
+    rx3, ry3 = _ray(K, i + 1, j)
+    rx2, ry2 = _ray(K, i - 1, j)
+    d3, d2 = float(depth[i + 1, j]), float(depth[i - 1, j])
+    return (rx3 * d3 - rx2 * d2, ry3 * d3 - ry2 * d2, d3 - d2,
+            rx1 * d1 - rx0 * d0, ry1 * d1 - ry0 * d0, d1 - d0)
+
+
 @njit(parallel=True, cache=True)
 def _normal_forward(rnormal, depth, alpha, K, normals, clen, row_sums):
     h, w = depth.shape
     for i in prange(1, h - 1):
         acc = 0.0
         for j in range(1, w - 1):
-            # b = P[i, j+1] - P[i, j-1], a = P[i+1, j] - P[i-1, j]
-            rx1, ry1 = _ray(K, i, j + 1)
-            rx0, ry0 = _ray(K, i, j - 1)
-            d1, d0 = float(depth[i, j + 1]), float(depth[i, j - 1])
-            b0, b1, b2 = rx1 * d1 - rx0 * d0, ry1 * d1 - ry0 * d0, d1 - d0
-            rx3, ry3 = _ray(K, i + 1, j)
-            rx2, ry2 = _ray(K, i - 1, j)
-            d3, d2 = float(depth[i + 1, j]), float(depth[i - 1, j])
-            a0, a1, a2 = rx3 * d3 - rx2 * d2, ry3 * d3 - ry2 * d2, d3 - d2
+            a0, a1, a2, b0, b1, b2 = _differences(K, depth, i, j)
             c0 = a1 * b2 - a2 * b1
             c1 = a2 * b0 - a0 * b2
             c2 = a0 * b1 - a1 * b0
@@ -266,14 +272,7 @@ def _normal_backward(rnormal, depth, alpha, K, normals, clen, scale, g_rnormal, 
                 gc0, gc1, gc2 = (u0 - n0 * dot) / n, (u1 - n1 * dot) / n, (u2 - n2 * dot) / n
             else:
                 gc0, gc1, gc2 = u0 / n, u1 / n, u2 / n
-            rx1, ry1 = _ray(K, i, j + 1)
-            rx0, ry0 = _ray(K, i, j - 1)
-            d1, d0 = float(depth[i, j + 1]), float(depth[i, j - 1])
-            b0, b1, b2 = rx1 * d1 - rx0 * d0, ry1 * d1 - ry0 * d0, d1 - d0
-            rx3, ry3 = _ray(K, i + 1, j)
-            rx2, ry2 = _ray(K, i - 1, j)
-            d3, d2 = float(depth[i + 1, j]), float(depth[i - 1, j])
-            a0, a1, a2 = rx3 * d3 - rx2 * d2, ry3 * d3 - ry2 * d2, d3 - d2
+            a0, a1, a2, b0, b1, b2 = _differences(K, depth, i, j)
             # dL/da = b x g_c, dL/db = g_c x a
             g_a[i, j, 0] = b1 * gc2 - b2 * gc1
             g_a[i, j, 1] = b2 * gc0 - b0 * gc2

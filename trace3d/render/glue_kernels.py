@@ -171,26 +171,36 @@ def _rotation(qw, qx, qy, qz):
             2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y))
 
 
+@njit(cache=True, inline="always")
+def _camera_axes(quats, R, pcam, g):
+    """Gaussian g's rotation (as :func:`_rotation`), its camera-space axes t_u, t_v, t_w (columns of
+    R @ Rq) and the sign that turns t_w towards the camera."""
+    w, x, y, z, inv, q00, q01, q02, q10, q11, q12, q20, q21, q22 = _rotation(
+        float(quats[g, 0]), float(quats[g, 1]), float(quats[g, 2]), float(quats[g, 3]))
+    au0 = R[0, 0] * q00 + R[0, 1] * q10 + R[0, 2] * q20
+    au1 = R[1, 0] * q00 + R[1, 1] * q10 + R[1, 2] * q20
+    au2 = R[2, 0] * q00 + R[2, 1] * q10 + R[2, 2] * q20
+    av0 = R[0, 0] * q01 + R[0, 1] * q11 + R[0, 2] * q21
+    av1 = R[1, 0] * q01 + R[1, 1] * q11 + R[1, 2] * q21
+    av2 = R[2, 0] * q01 + R[2, 1] * q11 + R[2, 2] * q21
+    aw0 = R[0, 0] * q02 + R[0, 1] * q12 + R[0, 2] * q22
+    aw1 = R[1, 0] * q02 + R[1, 1] * q12 + R[1, 2] * q22
+    aw2 = R[2, 0] * q02 + R[2, 1] * q12 + R[2, 2] * q22
+    sign = 1.0
+    if aw0 * pcam[g, 0] + aw1 * pcam[g, 1] + aw2 * pcam[g, 2] > 0:
+        sign = -1.0
+    return (w, x, y, z, inv, q00, q01, q02, q10, q11, q12, q20, q21, q22, au0, au1, au2, av0, av1, av2,
+            aw0, aw1, aw2, sign)
+
+
 @njit(parallel=True, cache=True)
 def _frames_forward(quats, scales, m2d, zs, pcam, K, R, ray_t, coeffs, normals):
     n = quats.shape[0]
     k00, k01, k02, k10, k11, k12 = K[0, 0], K[0, 1], K[0, 2], K[1, 0], K[1, 1], K[1, 2]
     for g in prange(n):
-        w, x, y, z, inv, q00, q01, q02, q10, q11, q12, q20, q21, q22 = _rotation(
-            float(quats[g, 0]), float(quats[g, 1]), float(quats[g, 2]), float(quats[g, 3]))
-        # camera-space axes: columns of R @ Rq
-        au0 = R[0, 0] * q00 + R[0, 1] * q10 + R[0, 2] * q20
-        au1 = R[1, 0] * q00 + R[1, 1] * q10 + R[1, 2] * q20
-        au2 = R[2, 0] * q00 + R[2, 1] * q10 + R[2, 2] * q20
-        av0 = R[0, 0] * q01 + R[0, 1] * q11 + R[0, 2] * q21
-        av1 = R[1, 0] * q01 + R[1, 1] * q11 + R[1, 2] * q21
-        av2 = R[2, 0] * q01 + R[2, 1] * q11 + R[2, 2] * q21
-        aw0 = R[0, 0] * q02 + R[0, 1] * q12 + R[0, 2] * q22
-        aw1 = R[1, 0] * q02 + R[1, 1] * q12 + R[1, 2] * q22
-        aw2 = R[2, 0] * q02 + R[2, 1] * q12 + R[2, 2] * q22
-        sign = 1.0
-        if aw0 * pcam[g, 0] + aw1 * pcam[g, 1] + aw2 * pcam[g, 2] > 0:
-            sign = -1.0
+        # camera-space axes (columns of R @ Rq) and the normal's side
+        (w, x, y, z, inv, q00, q01, q02, q10, q11, q12, q20, q21, q22, au0, au1, au2, av0, av1, av2, aw0, aw1, aw2,
+         sign) = _camera_axes(quats, R, pcam, g)
         normals[g, 0] = sign * aw0
         normals[g, 1] = sign * aw1
         normals[g, 2] = sign * aw2
@@ -238,20 +248,8 @@ def _frames_backward(quats, scales, m2d, zs, pcam, K, R, g_ray, g_coeffs, g_norm
             g_quats[g, 0] = g_quats[g, 1] = g_quats[g, 2] = g_quats[g, 3] = 0.0
             g_scales[g, 0] = g_scales[g, 1] = g_m2d[g, 0] = g_m2d[g, 1] = g_zs[g] = 0.0
             continue
-        w, x, y, z, inv, q00, q01, q02, q10, q11, q12, q20, q21, q22 = _rotation(
-            float(quats[g, 0]), float(quats[g, 1]), float(quats[g, 2]), float(quats[g, 3]))
-        au0 = R[0, 0] * q00 + R[0, 1] * q10 + R[0, 2] * q20
-        au1 = R[1, 0] * q00 + R[1, 1] * q10 + R[1, 2] * q20
-        au2 = R[2, 0] * q00 + R[2, 1] * q10 + R[2, 2] * q20
-        av0 = R[0, 0] * q01 + R[0, 1] * q11 + R[0, 2] * q21
-        av1 = R[1, 0] * q01 + R[1, 1] * q11 + R[1, 2] * q21
-        av2 = R[2, 0] * q01 + R[2, 1] * q11 + R[2, 2] * q21
-        aw0 = R[0, 0] * q02 + R[0, 1] * q12 + R[0, 2] * q22
-        aw1 = R[1, 0] * q02 + R[1, 1] * q12 + R[1, 2] * q22
-        aw2 = R[2, 0] * q02 + R[2, 1] * q12 + R[2, 2] * q22
-        sign = 1.0
-        if aw0 * pcam[g, 0] + aw1 * pcam[g, 1] + aw2 * pcam[g, 2] > 0:
-            sign = -1.0
+        (w, x, y, z, inv, q00, q01, q02, q10, q11, q12, q20, q21, q22, au0, au1, au2, av0, av1, av2, aw0, aw1, aw2,
+         sign) = _camera_axes(quats, R, pcam, g)
         su = float(scales[g, 0])
         sv = float(scales[g, 1])
         u0, u1, u2 = au0 * su, au1 * su, au2 * su
