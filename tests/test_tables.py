@@ -128,3 +128,25 @@ def test_grid_groups_settings_written_before_a_key_existed(tmp_path):
         path.write_text(json.dumps(data))
     t5 = build_tables(root)[3]
     assert [r[0] for r in t5.rows] == ["no_refine", "full"]
+
+
+def test_grid_takes_the_self_prompting_row_above_its_contrastive_twin(tmp_path):
+    """As the paper's Table 5 has an "SP." row: a self-prompting variant of the full settings joins the grid
+    above `full`; a closed-form (labels) variant of the same switches does not."""
+    root = tmp_path / "results"
+    values = {
+        "full": metrics(0.8, 22.0, 0.9, 0.98, {**FULL, "lifting": "contrastive"}, method="contrastive"),
+        "no_refine": metrics(0.6, 19.0, 0.85, 0.97, {**NO_REFINE, "lifting": "contrastive"}, method="contrastive"),
+        "self_prompt": metrics(0.7, 20.0, 0.6, 0.9, {**FULL, "variant": "self_prompt", "lifting": "self_prompt"},
+                               method="self_prompt"),
+        "flashsplat": metrics(0.5, 18.0, 0.8, 0.97, {**NO_REFINE, "variant": "flashsplat", "lifting": "labels"},
+                              method="labels"),
+    }
+    for variant, data in values.items():
+        path = root / "room0" / variant / "eval" / "metrics.json"
+        path.parent.mkdir(parents=True)
+        path.write_text(json.dumps(data))
+    t5 = build_tables(root)[3]
+    assert [r[0] for r in t5.rows] == ["no_refine", "self_prompt", "full"]
+    assert t5.rows[1] == ["self_prompt", "self_prompt", "✓", "✓", "60.0 ± 0.0", "70.0 ± 0.0", "20.0 ± 0.0"]
+    assert "flashsplat" in {r[0] for r in build_tables(root)[0].rows}  # still a row of Table 2

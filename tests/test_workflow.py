@@ -84,7 +84,8 @@ def test_end_to_end_tiny(tmp_path):
             "evaluate": {"min_pixels": 20, "turntable_views": 3, "turntable_size": 32},
         },
         # both ablation switches: the shared steps must run once
-        "variants": {"full": {}, "no_refine": {"density_control": False}, "raw": {"consistent_masks": False}},
+        "variants": {"full": {}, "no_refine": {"density_control": False}, "raw": {"consistent_masks": False},
+                     "sp": {"lifting": "self_prompt"}, "off": {"preset": "official"}},
         "scenes": {"a": {"kind": "synthetic", "synthetic": {"seed": 1}},
                    "b": {"kind": "synthetic", "synthetic": {"seed": 2}}},
         # one more mask level of scene a, on a's fit (0.5 is a itself)
@@ -104,7 +105,8 @@ def test_end_to_end_tiny(tmp_path):
         assert (tmp_path / "results" / scene / "gaussians" / "point_cloud.ply").is_file()
         for step in ("trace-paper", "merge-paper", "refine-paper-merged", "refine-paper-patches"):
             assert (tmp_path / "results" / scene / step).is_dir(), step
-        assert not (tmp_path / "results" / scene / "refine-official-merged").exists()
+        assert not (tmp_path / "results" / scene / "refine-official-patches").exists()  # no such variant
+        assert (tmp_path / "results" / scene / "refine-official-merged").is_dir()  # the official preset's own
         assert len(list((tmp_path / "results" / scene / "merge-paper" / "instances").glob("*.png"))) >= 4
         for name in ("full", "no_refine", "raw"):
             assert (tmp_path / "results" / scene / name / "lift" / "features.npy").is_file(), name
@@ -119,6 +121,13 @@ def test_end_to_end_tiny(tmp_path):
         assert "full" in text, (name, text)
         assert (tables / f"{name}.csv").is_file() and (tables / f"{name}.tex").is_file()
     assert "no_refine" in (tables / "table2.md").read_text() and "raw" in (tables / "table3.md").read_text()
+    for scene in ("a", "b"):  # self-prompting: no features, its own evaluation; the official preset: its own lift
+        assert json.loads((tmp_path / "results" / scene / "sp" / "lift" / "lift.json").read_text())["method"] == \
+            "self_prompt"
+        assert (tmp_path / "results" / scene / "sp" / "eval" / "metrics.json").is_file()
+        assert json.loads((tmp_path / "results" / scene / "off" / "lift" / "lift.json").read_text())["params"][
+            "preset"] == "official"
+    assert "| sp |" in (tables / "table5.md").read_text() and "| off |" in (tables / "table2.md").read_text()
     assert "official" in (tables / "official" / "table2.md").read_text()  # its protocol note
     assert "standard" in (tables / "table2.md").read_text() and "official" not in (tables / "table2.md").read_text()
     assert (tmp_path / "results" / "plots" / "lift" / "a-full.png").stat().st_size > 1000

@@ -35,6 +35,7 @@ GRID_KEYS = ("consistent_masks", "density_control")
 # Variant settings that joined later: a metrics.json written before a key existed had its default.
 SETTING_DEFAULTS = {"preset": "paper", "lifting": "contrastive", "overlay": False}
 DASH = "–"
+SELF_PROMPT = "self_prompt"
 
 
 @dataclass
@@ -179,38 +180,45 @@ def _per_scene_table(name: str, caption: str, scenes: list[str], rows: list[Row]
 
 def _grid_group(rows: list[Row]) -> list[Row]:
     """The variants that differ only in the two ablation switches: the group of ``full`` (else the
-    largest group; ties: the group of the first variant by name)."""
-    def other(r: Row) -> str:
+    largest group; ties: the group of the first variant by name). Beside ``full``'s lifting method,
+    the group takes the self-prompting variants of the same settings, as the paper's Table 5 has an
+    "SP." row; other methods (the closed-form baseline) stay out of the grid."""
+    def other(r: Row, method: bool = True) -> str:
         settings = {**SETTING_DEFAULTS, **r.settings}
-        return json.dumps({k: v for k, v in settings.items() if k not in GRID_KEYS} | {"method": r.method},
-                          sort_keys=True)
+        kept = {k: v for k, v in settings.items() if k not in GRID_KEYS and (method or k != "lifting")}
+        return json.dumps(kept | ({"method": r.method} if method else {}), sort_keys=True)
 
     eligible = [r for r in rows if all(isinstance(r.settings.get(k), bool) for k in GRID_KEYS)]
     if not eligible:
         return []
+    full = next((r for r in eligible if r.name == "full"), None)
+    if full is not None:
+        return [r for r in eligible if other(r, method=False) == other(full, method=False)
+                and r.method in (full.method, SELF_PROMPT)]
     groups: dict[str, list[Row]] = {}
     for r in eligible:
         groups.setdefault(other(r), []).append(r)
-    full = next((r for r in eligible if r.name == "full"), None)
-    if full is not None:
-        return groups[other(full)]
     return max(groups.values(), key=lambda g: (len(g), [-ord(c) for c in g[0].name]))
 
 
 def table5(rows: list[Row]) -> Table:
     """The ablation grid (paper Table 5): one row per (consistent masks, density control) present."""
     group = _grid_group(rows)
-    by_combo: dict[tuple[bool, bool], Row] = {}
+    by_combo: dict[tuple[bool, bool, bool], Row] = {}  # (consistent masks, density control, contrastive)
     for r in sorted(group, key=lambda r: r.name):
-        by_combo.setdefault((r.settings["consistent_masks"], r.settings["density_control"]), r)
+        by_combo.setdefault((r.settings["consistent_masks"], r.settings["density_control"],
+                             r.method != SELF_PROMPT), r)
     header = ["Variant", "Lifting", "Consistent 2D Mask", "Amb. Gauss. Control", "NVS mIoU", "Object mIoU", "PSNR"]
     csv_header = ["variant", "lifting", "consistent_masks", "density_control", "nvs_miou_mean", "nvs_miou_std",
                   "object_miou_mean", "object_miou_std", "psnr_mean", "psnr_std"]
     text, tex, plain = [], [], []
-    for combo in ((False, False), (False, True), (True, False), (True, True)):  # the paper's row order
+    # the paper's row order; a self-prompting row goes above its contrastive twin
+    for combo in [(m, d, c) for m, d in ((False, False), (False, True), (True, False), (True, True))
+                  for c in (False, True)]:
         r = by_combo.get(combo)
         if r is None:
             continue
+        combo = combo[:2]
         marks = ["✓" if c else "×" for c in combo]
         tex_marks = ["$\\checkmark$" if c else "$\\times$" for c in combo]
         pms = [_pm(r.nvs_miou, 100.0), _pm(r.object_miou, 100.0), _pm(r.psnr, 1.0)]
