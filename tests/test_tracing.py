@@ -292,8 +292,12 @@ def test_presets_reach_the_code():
     assert (official.statistic, official.min_visibility, official.ambiguity_threshold, official.scale_divisor,
             official.iterations, official.detect_at) == ("pixels", 25.0, 0.4, 1.6, 9000, [10, 1210, 2410, 3610])
     assert official.detection_iterations() == [1, 121, 241, 361]
+    assert (official.prune, official.final_prune, official.prune_unseen) == ("after_split", False, True)
     paper = RefineParams()
     assert (paper.statistic, paper.gamma, paper.ambiguity_threshold, paper.scale_divisor) == ("weights", 0.8, 0.5, 2.0)
+    assert (paper.prune, paper.final_prune, paper.prune_unseen) == ("next_detection", True, False)
+    with pytest.raises(ValueError, match="prune"):
+        RefineParams(prune="never")
     assert RefineParams(preset="official", scale_divisor=3.0).scale_divisor == 3.0  # a key overrides the preset
     assert MergeParams(preset="official").threshold == 0.4 and MergeParams().threshold == 0.5
     assert TraceParams(preset="official").statistic == "pixels" and TraceParams().statistic == "weights"
@@ -332,6 +336,48 @@ def test_git_strategy_splits_then_prunes_children_that_stay_ambiguous():
     assert len(state) == before - expected_pruned + event2["git_split"]
     assert (state.model.extras[GENERATION] <= 1).all()
     assert strategy.after_step(3, state) is None  # not a detection iteration
+
+
+def test_after_split_pruning_leaves_nothing_ambiguous_and_unseen_gaussians_go():
+    """The released code's pruning (official preset): at a detection every ambiguous Gaussian is split
+    and whatever is still ambiguous right after is removed; at iteration 1 Gaussians no view sees go."""
+    from trace3d.training import GaussianOptimizer, TrainParams, learning_rates
+
+    model, _, cameras = two_objects()
+    straddler = grid_model(-0.15, 0.15, -0.15, 0.15, 1.9, step=0.3)
+    straddler.opacity_logits[:] = 0.0
+    hidden = grid_model(40.0, 40.3, 40.0, 40.3, 2.0, step=0.3)  # far outside every view
+    scene = with_generation(concat(concat(model, straddler), hidden))
+    n_hidden = len(hidden)
+    maps = [np.where(pixel_x_world(c) < 0.0, 1, 2) for c in cameras]
+    params = RefineParams(iterations=3, detect_at=[1, 2], schedule_scale=1.0, prune="after_split", prune_unseen=True)
+    strategy = GITStrategy(cameras, maps, params, torch.Generator().manual_seed(0))
+    assert strategy.unseen(scene)[-n_hidden:].all() and not strategy.unseen(scene)[: len(model)].any()
+    state = GaussianOptimizer(scene, learning_rates(TrainParams(), 1.0), TrainParams(), 1.0)
+    strategy.initialize(state, {})
+    ambiguous_before = int(strategy.detect(scene).sum())
+    assert ambiguous_before >= 1
+    # what the round should remove: the same split (same seed) replayed by hand, then detected
+    replay = GITStrategy(cameras, maps, params, torch.Generator().manual_seed(0))
+    state_r = GaussianOptimizer(scene.subset(~torch.from_numpy(replay.unseen(scene))),
+                                learning_rates(TrainParams(), 1.0), TrainParams(), 1.0)
+    replay._split(state_r, torch.from_numpy(replay.detect(state_r.model)), torch.zeros(len(state_r), dtype=torch.bool))
+    still = replay.detect(state_r.model)
+    assert still.any() and (state_r.model.extras[GENERATION].numpy()[still] == 1).any()
+
+    event = strategy.after_step(1, state)
+    assert strategy.rounds[-1]["unseen_pruned"] == n_hidden
+    assert event["git_ambiguous"] == ambiguous_before and event["git_split"] == ambiguous_before
+    assert event["git_pruned"] == int(still.sum())  # every Gaussian still ambiguous after the split goes
+    torch.testing.assert_close(state.model.means, state_r.model.means[torch.from_numpy(~still)])
+    assert len(state) == len(scene) - n_hidden + event["git_split"] - event["git_pruned"]
+    assert not strategy.unseen(state.model).any()
+    # the paper's pruning on the same scene keeps the children until the next detection
+    paper = GITStrategy(cameras, maps, RefineParams(iterations=3, detect_at=[1, 2], schedule_scale=1.0),
+                        torch.Generator().manual_seed(0))
+    state2 = GaussianOptimizer(scene, learning_rates(TrainParams(), 1.0), TrainParams(), 1.0)
+    event2 = paper.after_step(1, state2)
+    assert event2["git_pruned"] == 0 and len(state2) == len(scene) + event2["git_split"]
 
 
 def test_boundary_band_marks_both_sides():

@@ -22,9 +22,17 @@ Presets (every value a key of :class:`RefineParams`):
   1, 1000, 2000, 3000 of a 5000-iteration retraining (the paper says "every 1000 iterations" and
   gives neither the first detection nor the length; these are ours), loss L1 + 0.2 D-SSIM + 0.05
   normal consistency, no gradient densification (the paper *replaces* the 3DGS strategy).
-- ``official`` (the released code): pixel counts, a view counts as seen above 25 pixels,
-  theta_As 0.4, scales / 1.6, detection at 10, 1210, 2410, 3610 of a 9000-iteration fine-tune
-  without gradient densification, loss L1 + 0.2 D-SSIM + 0.05 normal.
+- ``official`` (the released code, ``remove_ab_gaus.py`` with ``script/replica.sh``'s flags): pixel
+  counts, a view counts as seen above 25 pixels, theta_As 0.4, scales / 1.6, detection at 10, 1210,
+  2410, 3610 of a 9000-iteration fine-tune without gradient densification, loss L1 + 0.2 D-SSIM +
+  0.05 normal; and its pruning: at a detection every ambiguous Gaussian is split (children too) and
+  every Gaussian still ambiguous right after the split is removed (``prune: after_split``), there is
+  no detection after the last iteration (``final_prune: false``), and Gaussians that no training
+  view sees are removed at the first and the last iteration (``prune_unseen: true``).
+
+``prune: next_detection`` (the paper's reading, ``paper``): ambiguous original Gaussians are split,
+children still ambiguous at the next detection are removed, and ``final_prune`` checks the last
+round's children after the final iteration.
 
 All iteration numbers are on the 30k scale and multiplied by ``schedule_scale`` like the fit's.
 """
@@ -50,9 +58,11 @@ log = logging.getLogger(__name__)
 
 PRESET_VALUES = {
     "paper": {"statistic": "weights", "min_visibility": 0.0, "gamma": 0.8, "ambiguity_threshold": 0.5,
-              "scale_divisor": 2.0, "iterations": 5000, "detect_at": [1, 1000, 2000, 3000]},
+              "scale_divisor": 2.0, "iterations": 5000, "detect_at": [1, 1000, 2000, 3000],
+              "prune": "next_detection", "final_prune": True, "prune_unseen": False},
     "official": {"statistic": "pixels", "min_visibility": 25.0, "gamma": 0.8, "ambiguity_threshold": 0.4,
-                 "scale_divisor": 1.6, "iterations": 9000, "detect_at": [10, 1210, 2410, 3610]},
+                 "scale_divisor": 1.6, "iterations": 9000, "detect_at": [10, 1210, 2410, 3610],
+                 "prune": "after_split", "final_prune": False, "prune_unseen": True},
 }
 
 
@@ -69,7 +79,9 @@ class RefineParams:
     position_std: float = 1.0  # children's centres ~ N(0, position_std * (s_u, s_v)) in the tangent plane
     iterations: int | None = None  # retraining length, 30k scale
     detect_at: list[int] | None = None  # detection iterations, 30k scale
-    final_prune: bool = True
+    prune: Literal["next_detection", "after_split"] | None = None  # which ambiguous Gaussians go, and when
+    final_prune: bool | None = None  # a last detection after the final iteration (next_detection only)
+    prune_unseen: bool | None = None  # remove Gaussians no training view sees, at the first and last iteration
     schedule_scale: float = 0.1
     # retraining (the fit's TrainParams otherwise): a converged scene is fine-tuned, so the position
     # learning rate starts where the fit's schedule is at about two thirds, SH at full degree and
@@ -91,6 +103,8 @@ class RefineParams:
             raise ValueError(f"ambiguity_threshold must be in [0, 1), got {self.ambiguity_threshold}")
         if not self.scale_divisor > 0:
             raise ValueError(f"scale_divisor must be > 0, got {self.scale_divisor}")
+        if self.prune not in ("next_detection", "after_split"):
+            raise ValueError(f"prune must be 'next_detection' or 'after_split', got {self.prune!r}")
         if self.iterations < 1 or any(d < 0 for d in self.detect_at):
             raise ValueError(f"iterations must be >= 1 and detect_at >= 0, got {self.iterations}, {self.detect_at}")
         if not self.schedule_scale > 0:
@@ -154,15 +168,13 @@ class GITStrategy(Strategy):
         if GENERATION not in state.model.extras:
             raise ValueError(f"GITStrategy: the model needs the extra attribute {GENERATION!r} (with_generation()).")
 
-    @torch.no_grad()
-    def after_step(self, iteration: int, state: GaussianOptimizer) -> dict | None:
-        if iteration not in self.detect_at:
-            return None
-        start = time.perf_counter()
-        ambiguous = torch.from_numpy(self.detect(state.model)).to(state.model.device)
-        generation = state.model.extras[GENERATION]
-        prune = ambiguous & (generation > 0)
-        split = ambiguous & (generation == 0)
+    def unseen(self, model: GaussianModel) -> np.ndarray:
+        """[N] bool: Gaussians that no training view sees (no pixel's blending touches them)."""
+        stats = trace_views(model, self.cameras, self.label_maps, count_pixels=True, near=self.near)
+        return ~(stats.visibility > 0).any(axis=1)
+
+    def _split(self, state: GaussianOptimizer, split: torch.Tensor, prune: torch.Tensor) -> int:
+        """Replace the ``split`` Gaussians by two children each and remove the ``prune`` ones."""
         n_before = len(state)
         n_split = int(split.sum())
         if n_split:
@@ -173,14 +185,58 @@ class GITStrategy(Strategy):
         remove = torch.cat([prune | split, torch.zeros(len(state) - n_before, dtype=torch.bool, device=prune.device)])
         if bool(remove.any()):
             state.keep(~remove)
+        return n_split
+
+    @torch.no_grad()
+    def after_step(self, iteration: int, state: GaussianOptimizer) -> dict | None:
+        unseen_now = bool(self.params.prune_unseen) and iteration == 1
+        if iteration not in self.detect_at and not unseen_now:
+            return None
+        start = time.perf_counter()
+        device = state.model.device
+        n_unseen = 0
+        if unseen_now:  # the released code removes what no view sees before its first detection
+            unseen = torch.from_numpy(self.unseen(state.model)).to(device)
+            n_unseen = int(unseen.sum())
+            if n_unseen:
+                state.keep(~unseen)
+        if iteration not in self.detect_at:
+            self.rounds.append({"iteration": iteration, "gaussians_before": len(state) + n_unseen, "ambiguous": 0,
+                                "split": 0, "pruned": 0, "unseen_pruned": n_unseen, "gaussians_after": len(state),
+                                "seconds": round(time.perf_counter() - start, 3)})
+            return {"git_unseen_pruned": n_unseen, "total": len(state)}
+        n_before = len(state) + n_unseen
+        ambiguous = torch.from_numpy(self.detect(state.model)).to(device)
+        generation = state.model.extras[GENERATION]
+        if self.params.prune == "after_split":
+            # every ambiguous Gaussian is split; whatever is still ambiguous right after goes
+            n_split = self._split(state, ambiguous, torch.zeros_like(ambiguous))
+            still = torch.from_numpy(self.detect(state.model)).to(device)
+            n_pruned = int(still.sum())
+            if n_pruned:
+                state.keep(~still)
+        else:
+            # ambiguous originals are split; ambiguous children (of an earlier round) go
+            prune = ambiguous & (generation > 0)
+            n_split = self._split(state, ambiguous & (generation == 0), prune)
+            n_pruned = int(prune.sum())
         event = {"iteration": iteration, "gaussians_before": n_before, "ambiguous": int(ambiguous.sum()),
-                 "split": n_split, "pruned": int(prune.sum()), "gaussians_after": len(state),
+                 "split": n_split, "pruned": n_pruned, "unseen_pruned": n_unseen, "gaussians_after": len(state),
                  "seconds": round(time.perf_counter() - start, 3)}
         self.rounds.append(event)
-        log.info("GIT density control at %d: %d ambiguous of %d, split %d, pruned %d", iteration,
-                 event["ambiguous"], n_before, n_split, event["pruned"])
-        return {"git_ambiguous": event["ambiguous"], "git_split": n_split, "git_pruned": event["pruned"],
-                "total": len(state)}
+        log.info("GIT density control at %d: %d ambiguous of %d, split %d, pruned %d (+%d unseen)", iteration,
+                 event["ambiguous"], n_before, n_split, n_pruned, n_unseen)
+        return {"git_ambiguous": event["ambiguous"], "git_split": n_split, "git_pruned": n_pruned, "total": len(state)}
+
+    @torch.no_grad()
+    def prune_unseen(self, model: GaussianModel, iteration: int) -> GaussianModel:
+        """After training: remove the Gaussians no training view sees (the released code's last prune)."""
+        start = time.perf_counter()
+        unseen = self.unseen(model)
+        self.rounds.append({"iteration": iteration, "gaussians_before": len(model), "ambiguous": 0, "split": 0,
+                            "pruned": 0, "unseen_pruned": int(unseen.sum()), "gaussians_after": len(model) - int(unseen.sum()),
+                            "seconds": round(time.perf_counter() - start, 3), "final": True})
+        return model.subset(torch.from_numpy(~unseen).to(model.device))
 
     @torch.no_grad()
     def final_prune(self, model: GaussianModel, iteration: int) -> GaussianModel:
@@ -320,8 +376,10 @@ def run_refine(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: P
     result = fit(with_generation(model), train, images, train_params, extent=extent, strategy=strategy,
                  desc="GIT-guided refine")
     refined = result.model
-    if p.final_prune:
+    if p.final_prune and p.prune == "next_detection":
         refined = strategy.final_prune(refined, train_params.scaled("iterations"))
+    if p.prune_unseen:
+        refined = strategy.prune_unseen(refined, train_params.scaled("iterations"))
     stats1 = trace_views(refined, train, maps, count_pixels=p.statistic == "pixels", near=train_params.near)
     ambiguous1 = find_ambiguous(stats1, p.gamma, p.ambiguity_threshold, p.min_visibility)
     with torch_threads(train_params.torch_threads):
@@ -331,6 +389,7 @@ def run_refine(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: P
         "found": int(sum(r["ambiguous"] for r in strategy.rounds)),
         "split": int(sum(r["split"] for r in strategy.rounds)),
         "pruned": int(sum(r["pruned"] for r in strategy.rounds)),
+        "unseen_pruned": int(sum(r.get("unseen_pruned", 0) for r in strategy.rounds)),
         "gaussians_after": len(refined),
         "ambiguous_after": int(ambiguous1.sum()),
         "ambiguous_fraction_after": float(ambiguous1.mean()) if len(refined) else 0.0,
