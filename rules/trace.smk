@@ -12,7 +12,7 @@ rule trace:
         directory(f"{RESULTS}/{{scene}}/trace-{{preset}}"),
     params:
         p=preset_params("trace"),
-        code=code_version("scene.py", "render", "gaussians.py", "tracing", "training"),
+        code=code_version("scene.py", "render", "gaussians.py", "tracing/__init__.py", "tracing/git.py", "training"),
     threads: 2
     resources:
         mem_mb=2000,
@@ -37,7 +37,7 @@ rule merge:
         directory(f"{RESULTS}/{{scene}}/merge-{{preset}}"),
     params:
         p=preset_params("merge"),
-        code=code_version("scene.py", "tracing", "masks"),
+        code=code_version("scene.py", "tracing/__init__.py", "tracing/git.py", "tracing/merge.py", "masks"),
     threads: 2
     resources:
         mem_mb=2000,
@@ -64,7 +64,8 @@ rule refine:
     params:
         p=preset_params("refine"),
         labels=refine_labels_arg,
-        code=code_version("scene.py", "render", "gaussians.py", "tracing", "training", "losses.py"),
+        code=code_version("scene.py", "render", "gaussians.py", "tracing/__init__.py", "tracing/git.py",
+                           "tracing/refine.py", "training", "losses.py"),
     threads: 2
     resources:
         mem_mb=4000,
