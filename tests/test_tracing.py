@@ -298,6 +298,8 @@ def test_presets_reach_the_code():
     assert (paper.prune, paper.final_prune, paper.prune_unseen) == ("next_detection", True, False)
     with pytest.raises(ValueError, match="prune"):
         RefineParams(prune="never")
+    with pytest.raises(ValueError, match="final_prune"):
+        RefineParams(prune="after_split")  # the paper preset's final_prune needs next_detection
     assert RefineParams(preset="official", scale_divisor=3.0).scale_divisor == 3.0  # a key overrides the preset
     assert MergeParams(preset="official").threshold == 0.4 and MergeParams().threshold == 0.5
     assert TraceParams(preset="official").statistic == "pixels" and TraceParams().statistic == "weights"
@@ -338,7 +340,7 @@ def test_git_strategy_splits_then_prunes_children_that_stay_ambiguous():
     assert strategy.after_step(3, state) is None  # not a detection iteration
 
 
-def test_after_split_pruning_leaves_nothing_ambiguous_and_unseen_gaussians_go():
+def test_after_split_pruning_removes_what_stays_ambiguous_and_unseen_gaussians_go():
     """The released code's pruning (official preset): at a detection every ambiguous Gaussian is split
     and whatever is still ambiguous right after is removed; at iteration 1 Gaussians no view sees go."""
     from trace3d.training import GaussianOptimizer, TrainParams, learning_rates
@@ -350,7 +352,8 @@ def test_after_split_pruning_leaves_nothing_ambiguous_and_unseen_gaussians_go():
     scene = with_generation(concat(concat(model, straddler), hidden))
     n_hidden = len(hidden)
     maps = [np.where(pixel_x_world(c) < 0.0, 1, 2) for c in cameras]
-    params = RefineParams(iterations=3, detect_at=[1, 2], schedule_scale=1.0, prune="after_split", prune_unseen=True)
+    params = RefineParams(iterations=3, detect_at=[1, 2], schedule_scale=1.0, prune="after_split",
+                          final_prune=False, prune_unseen=True)
     strategy = GITStrategy(cameras, maps, params, torch.Generator().manual_seed(0))
     assert strategy.unseen(scene)[-n_hidden:].all() and not strategy.unseen(scene)[: len(model)].any()
     state = GaussianOptimizer(scene, learning_rates(TrainParams(), 1.0), TrainParams(), 1.0)
@@ -366,7 +369,7 @@ def test_after_split_pruning_leaves_nothing_ambiguous_and_unseen_gaussians_go():
     assert still.any() and (state_r.model.extras[GENERATION].numpy()[still] == 1).any()
 
     event = strategy.after_step(1, state)
-    assert strategy.rounds[-1]["unseen_pruned"] == n_hidden
+    assert strategy.rounds[-1]["unseen_pruned"] == n_hidden and event["git_unseen_pruned"] == n_hidden
     assert event["git_ambiguous"] == ambiguous_before and event["git_split"] == ambiguous_before
     assert event["git_pruned"] == int(still.sum())  # every Gaussian still ambiguous after the split goes
     torch.testing.assert_close(state.model.means, state_r.model.means[torch.from_numpy(~still)])

@@ -80,7 +80,7 @@ class RefineParams:
     iterations: int | None = None  # retraining length, 30k scale
     detect_at: list[int] | None = None  # detection iterations, 30k scale
     prune: Literal["next_detection", "after_split"] | None = None  # which ambiguous Gaussians go, and when
-    final_prune: bool | None = None  # a last detection after the final iteration (next_detection only)
+    final_prune: bool | None = None  # a last detection after the final iteration (prune: next_detection)
     prune_unseen: bool | None = None  # remove Gaussians no training view sees, at the first and last iteration
     schedule_scale: float = 0.1
     # retraining (the fit's TrainParams otherwise): a converged scene is fine-tuned, so the position
@@ -105,6 +105,9 @@ class RefineParams:
             raise ValueError(f"scale_divisor must be > 0, got {self.scale_divisor}")
         if self.prune not in ("next_detection", "after_split"):
             raise ValueError(f"prune must be 'next_detection' or 'after_split', got {self.prune!r}")
+        if self.final_prune and self.prune == "after_split":
+            raise ValueError("final_prune checks the last round's children, which prune: after_split has already "
+                             "checked; set final_prune: false with it")
         if self.iterations < 1 or any(d < 0 for d in self.detect_at):
             raise ValueError(f"iterations must be >= 1 and detect_at >= 0, got {self.iterations}, {self.detect_at}")
         if not self.schedule_scale > 0:
@@ -189,44 +192,43 @@ class GITStrategy(Strategy):
 
     @torch.no_grad()
     def after_step(self, iteration: int, state: GaussianOptimizer) -> dict | None:
+        detect_now = iteration in self.detect_at
         unseen_now = bool(self.params.prune_unseen) and iteration == 1
-        if iteration not in self.detect_at and not unseen_now:
+        if not (detect_now or unseen_now):
             return None
         start = time.perf_counter()
         device = state.model.device
-        n_unseen = 0
+        n_before = len(state)
+        n_unseen = n_ambiguous = n_split = n_pruned = 0
         if unseen_now:  # the released code removes what no view sees before its first detection
             unseen = torch.from_numpy(self.unseen(state.model)).to(device)
             n_unseen = int(unseen.sum())
             if n_unseen:
                 state.keep(~unseen)
-        if iteration not in self.detect_at:
-            self.rounds.append({"iteration": iteration, "gaussians_before": len(state) + n_unseen, "ambiguous": 0,
-                                "split": 0, "pruned": 0, "unseen_pruned": n_unseen, "gaussians_after": len(state),
-                                "seconds": round(time.perf_counter() - start, 3)})
-            return {"git_unseen_pruned": n_unseen, "total": len(state)}
-        n_before = len(state) + n_unseen
-        ambiguous = torch.from_numpy(self.detect(state.model)).to(device)
-        generation = state.model.extras[GENERATION]
-        if self.params.prune == "after_split":
-            # every ambiguous Gaussian is split; whatever is still ambiguous right after goes
-            n_split = self._split(state, ambiguous, torch.zeros_like(ambiguous))
-            still = torch.from_numpy(self.detect(state.model)).to(device)
-            n_pruned = int(still.sum())
-            if n_pruned:
-                state.keep(~still)
-        else:
-            # ambiguous originals are split; ambiguous children (of an earlier round) go
-            prune = ambiguous & (generation > 0)
-            n_split = self._split(state, ambiguous & (generation == 0), prune)
-            n_pruned = int(prune.sum())
-        event = {"iteration": iteration, "gaussians_before": n_before, "ambiguous": int(ambiguous.sum()),
+        if detect_now:
+            ambiguous = torch.from_numpy(self.detect(state.model)).to(device)
+            n_ambiguous = int(ambiguous.sum())
+            if self.params.prune == "after_split":
+                # every ambiguous Gaussian is split; whatever is still ambiguous right after goes
+                n_split = self._split(state, ambiguous, torch.zeros_like(ambiguous))
+                still = torch.from_numpy(self.detect(state.model)).to(device)
+                n_pruned = int(still.sum())
+                if n_pruned:
+                    state.keep(~still)
+            else:
+                # ambiguous originals are split; ambiguous children (of an earlier round) go
+                generation = state.model.extras[GENERATION]
+                prune = ambiguous & (generation > 0)
+                n_split = self._split(state, ambiguous & (generation == 0), prune)
+                n_pruned = int(prune.sum())
+        event = {"iteration": iteration, "gaussians_before": n_before, "ambiguous": n_ambiguous,
                  "split": n_split, "pruned": n_pruned, "unseen_pruned": n_unseen, "gaussians_after": len(state),
                  "seconds": round(time.perf_counter() - start, 3)}
         self.rounds.append(event)
         log.info("GIT density control at %d: %d ambiguous of %d, split %d, pruned %d (+%d unseen)", iteration,
-                 event["ambiguous"], n_before, n_split, n_pruned, n_unseen)
-        return {"git_ambiguous": event["ambiguous"], "git_split": n_split, "git_pruned": n_pruned, "total": len(state)}
+                 n_ambiguous, n_before, n_split, n_pruned, n_unseen)
+        return {"git_ambiguous": n_ambiguous, "git_split": n_split, "git_pruned": n_pruned,
+                "git_unseen_pruned": n_unseen, "total": len(state)}
 
     @torch.no_grad()
     def prune_unseen(self, model: GaussianModel, iteration: int) -> GaussianModel:
@@ -376,7 +378,7 @@ def run_refine(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: P
     result = fit(with_generation(model), train, images, train_params, extent=extent, strategy=strategy,
                  desc="GIT-guided refine")
     refined = result.model
-    if p.final_prune and p.prune == "next_detection":
+    if p.final_prune:
         refined = strategy.final_prune(refined, train_params.scaled("iterations"))
     if p.prune_unseen:
         refined = strategy.prune_unseen(refined, train_params.scaled("iterations"))
