@@ -195,6 +195,80 @@ def test_loss_and_gradient_agree_through_both_paths(fused):
         assert grads[0].abs().sum() > 0
 
 
+def test_fast_step_is_the_autograd_step():
+    """The hand-written sparse step (gather, fused loss, scatter into the reused buffer, numba Adam)
+    against the same iterations through autograd: identical features, step after step."""
+    model, cameras = tilted_scene()
+    params = ContrastiveParams(pixels=150, pool_pixels=300, iterations=1, lr=0.05)
+    fast = ContrastiveTrainer(model, cameras, label_maps_of(cameras), params)
+    slow = ContrastiveTrainer(model, cameras, label_maps_of(cameras), params)
+    start = fast.features.detach().clone()
+    for _ in range(4):
+        assert fast.fast_step() == pytest.approx(slow.autograd_step("sparse"), rel=1e-6)  # (float32 there)
+    assert not torch.equal(fast.features.detach(), start)
+    assert torch.equal(fast.features.detach(), slow.features.detach())
+    assert not fast._grad.any()  # the buffer is left clear for the next step
+
+
+def test_scatter_into_a_buffer_does_not_depend_on_the_split():
+    from trace3d.render.pixel_weights import _scatter_rows, scatter_rows_add
+
+    model, cameras = tilted_scene()
+    weights = pixel_weights(model.splats(), cameras[0])
+    rows = np.array([3, 40, 41, 900, 2])
+    v_out = np.random.default_rng(0).standard_normal((rows.size, 5)).astype(np.float32)
+    outs = []
+    for parts in (1, 2, 7):
+        grad = np.zeros((len(model), 5), np.float32)
+        scatter_rows_add(weights.indptr, weights.indices, weights.weights, rows, v_out, grad, parts)
+        outs.append(grad)
+    assert np.abs(outs[0]).sum() > 0
+    assert np.array_equal(outs[0], outs[1]) and np.array_equal(outs[0], outs[2])
+    ref = _scatter_rows(weights.indptr, weights.indices, weights.weights, rows, v_out, len(model))
+    assert np.array_equal(outs[0], ref)
+
+
+def test_cpu_adam_matches_torch_adam_and_clears_the_gradient():
+    from trace3d.training.adam_kernel import CpuAdam
+
+    gen = torch.Generator().manual_seed(5)
+    start = torch.randn(40, 7, generator=gen)
+    ours = start.clone()
+    ref = start.clone().requires_grad_(True)
+    adam = CpuAdam(ours, lr=0.01)
+    torch_adam = torch.optim.Adam([ref], lr=0.01)
+    for k in range(6):
+        g = torch.randn(40, 7, generator=gen) * (0.0 if k == 2 else 1.0)  # a zero gradient still moves Adam
+        g[::3] = 0.0  # rows without gradient this step
+        buf = g.numpy().copy()
+        adam.step(buf)
+        assert not buf.any()
+        ref.grad = g.clone()
+        torch_adam.step()
+    torch.testing.assert_close(ours, ref.detach(), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(torch.from_numpy(adam.exp_avg_sq), torch_adam.state[ref]["exp_avg_sq"], rtol=1e-5,
+                               atol=1e-9)
+    with pytest.raises(Trace3DError, match="gradient must be"):
+        adam.step(np.zeros((40, 6), np.float32))
+
+
+def test_fused_loss_pads_odd_sizes():
+    """Sizes that are not multiples of the kernel's tile (64 pixels) or vector width (16 features)."""
+    gen = torch.Generator().manual_seed(6)
+    feats = torch.randn(70, 5, generator=gen, dtype=torch.float64)
+    labels = torch.randint(1, 4, (70,), generator=gen)
+    for kw in ({"kernel": "printed", "temperature": 0.3}, {"kernel": "official", "temperature_pos": 2.0,
+                                                           "temperature_neg": 0.5}):
+        f64 = feats.clone().requires_grad_(True)
+        ref = contrastive_loss_reference(f64, labels, **kw)
+        (g_ref,) = torch.autograd.grad(ref, f64)
+        f32 = feats.float().requires_grad_(True)
+        fused = fused_contrastive_loss(f32, labels, **kw)
+        (g_fused,) = torch.autograd.grad(fused, f32)
+        assert float(fused) == pytest.approx(float(ref), rel=1e-5)
+        torch.testing.assert_close(g_fused.double(), g_ref, rtol=1e-3, atol=1e-5 * float(g_ref.abs().max()))
+
+
 # ----------------------------------------------------------------------------------------------
 # Query-point finding
 # ----------------------------------------------------------------------------------------------

@@ -5,8 +5,9 @@ Figures (one JSON object), on a fitted room (scene/, poses/, gaussians/, consist
 - ``sparse_ms`` / ``raster_ms``: ms per iteration (sample pixels of one view, render them, loss,
   backward, Adam step), best-of median over repeats, for the preset's pixel count and for ``pixels``
   of the measured step params, both with the step's loss (the fused kernel unless ``fused: false``);
-  ``lift_speedup`` = raster_ms / sparse_ms (goal >= 20, whole iteration); ``sparse_torch_loss_ms``:
-  the sparse path with the torch autograd loss (the fused kernel's twin);
+  ``lift_speedup`` = raster_ms / sparse_ms (goal >= 20, whole iteration); ``sparse_autograd_ms``: the
+  sparse path with the fused loss through autograd instead of the hand-written fast step (its twin);
+  ``sparse_torch_loss_ms``: the sparse path with the torch autograd loss (the fused kernel's twin);
   ``render_speedup`` the same for the render + its backward alone (no loss).
 - ``weights``: nnz and bytes of the per-view pixel-weight pools, and of one full view's weights.
 - ``step_seconds``: wall time of the contrastive lift with the given step params (precompute + train).
@@ -40,6 +41,17 @@ def _time_iterations(trainer, path: str, count: int) -> float:
     for _ in range(count):
         start = time.perf_counter()
         trainer.step(path)
+        times.append(time.perf_counter() - start)
+    return float(np.median(times)) * 1000.0
+
+
+def _time_autograd(trainer, count: int) -> float:
+    # the sparse path through autograd (the fast step's twin: same loss kernel, gather and Adam)
+    trainer.autograd_step("sparse")
+    times = []
+    for _ in range(count):
+        start = time.perf_counter()
+        trainer.autograd_step("sparse")
         times.append(time.perf_counter() - start)
     return float(np.median(times)) * 1000.0
 
@@ -96,6 +108,7 @@ def run_bench(room: Path, quick: bool = False, params: dict | None = None) -> di
         trainer.step("raster")
         sparse_ms = _time_iterations(trainer, "sparse", repeats * 4)
         raster_ms = _time_iterations(trainer, "raster", repeats)
+        autograd_ms = _time_autograd(trainer, repeats * 2)
         trainer.params.fused = False  # the torch autograd loss (the fused kernel's twin) on the sparse path
         trainer.step("sparse")
         torch_loss_ms = _time_iterations(trainer, "sparse", repeats * 2)
@@ -103,7 +116,8 @@ def run_bench(room: Path, quick: bool = False, params: dict | None = None) -> di
         sparse_r = _time_render_only(trainer, "sparse", repeats * 4)
         raster_r = _time_render_only(trainer, "raster", repeats)
         rows.append({"pixels": pixels, "sparse_ms": sparse_ms, "raster_ms": raster_ms,
-                     "lift_speedup": raster_ms / sparse_ms, "sparse_torch_loss_ms": torch_loss_ms,
+                     "lift_speedup": raster_ms / sparse_ms, "sparse_autograd_ms": autograd_ms,
+                     "sparse_torch_loss_ms": torch_loss_ms,
                      "sparse_render_ms": sparse_r,
                      "raster_render_ms": raster_r, "render_speedup": raster_r / sparse_r,
                      "pool_nnz": trainer.pools.nnz, "pool_bytes": trainer.pools.nbytes,

@@ -12,15 +12,20 @@ k is symmetric in (u, v), the gradient collects both roles of a pair:
     dL/df_u = 2/P sum_v  c_uv (f_u - f_v),
     c_uv = k'(d2_uv) (1/den_u + 1/den_v) - [v in block(u)] k_pos'(d2_uv) (1/num_u + 1/num_v)
 
-The Gram matrix f f^T comes from one BLAS product; then two passes over the P x P pairs, rows in parallel
-(``prange``): kernel values and k' (sums per row in float64), then the coefficients and the gradient
-rows. Every row writes only its own outputs, so the result does not depend on the thread count.
-Float32 pair arithmetic with an own vectorisable exp (relative error ~1e-6). Kernels (``kind``):
+Both k and c are symmetric, so only the tiles (I, J), I <= J, of the pair matrix are visited (64 x 64
+pixels each, tiles in parallel with ``prange``): a first pass computes each tile's Gram block, the
+kernel values and k' (row and column sums per tile), a second pass the coefficients and both their
+products with the features (c [f, 1] for the tile's rows and c^T [f, 1] for its columns). Every tile
+writes its own partial sums, added in a fixed order afterwards, so the result does not depend on the
+thread count. Float32 pair arithmetic with own vectorisable exps (relative error ~4e-6); sample and
+feature sizes are padded to the tile and vector widths with pixels of weight 0. Kernels (``kind``):
 0 = exp(-a d2) (``official`` with a_pos = 1/tau_pos, a_neg = 1/tau_neg; ``gaussian`` with a = tau), 1 =
 exp(exp(-a d2)) (``printed``).
 """
 
 from __future__ import annotations
+
+import threading
 
 import numpy as np
 import torch
@@ -45,96 +50,262 @@ def _exp_neg(s):
     return e2 * e2
 
 
-@njit(inline="always", fastmath=PAIR_MATH)
-def _k(d2, a, kind):
-    """(kernel value, derivative w.r.t. d2) in float32."""
-    e = _exp_neg(a * d2)
-    if kind == 0:
-        return e, -a * e
-    k = np.float32(1.0) / _exp_neg(e)  # exp(e), e in (0, 1]
-    return k, -a * e * k
+TILE = 64  # pixels per side of a pair tile (the sample is padded to a multiple of it)
+LANES = 16  # the feature dimension is padded to a multiple of this (zeros change no distance)
 
 
 @njit(inline="always", fastmath=PAIR_MATH)
-def _row(gram, norms, u, d2):
-    nu = norms[u]
-    for v in range(d2.shape[0]):
-        d2[v] = max(nu + norms[v] - np.float32(2.0) * gram[u, v], np.float32(0.0))
+def _exp_unit(e):
+    """exp(e) for e in [0, 1] in float32: exp(1/2) exp(e - 1/2), Taylor degree 8 on |x| <= 1/2
+    (truncation < 1e-8 relative; the printed kernel's outer exp)."""
+    x = e - np.float32(0.5)
+    p = np.float32(1.0 / 40320.0)
+    p = p * x + np.float32(1.0 / 5040.0)
+    p = p * x + np.float32(1.0 / 720.0)
+    p = p * x + np.float32(1.0 / 120.0)
+    p = p * x + np.float32(1.0 / 24.0)
+    p = p * x + np.float32(1.0 / 6.0)
+    p = p * x + np.float32(0.5)
+    p = p * x + np.float32(1.0)
+    p = p * x + np.float32(1.0)
+    return p * np.float32(1.6487212707001282)
 
 
 @njit(parallel=True, cache=True, fastmath=PAIR_MATH)
-def _pairs(gram, norms, ft, starts, ends, a_pos, a_neg, kind, want_grad):
-    """The loss terms and gradient over the P x P pairs of pixels sorted by instance.
+def _pair_tiles(ft, norms, block, valid, a_pos, a_neg, kind, ti, tj, dkt, pden, pnum):
+    """First pass, over the tiles (I, J), I <= J, of the symmetric pair matrix.
 
-    Args:
-        gram: [P, P] float32 f f^T; norms: [P] float32 ||f||^2 (its diagonal); ft: [D, P] float32 f^T.
-        starts, ends: [P] block bounds of each pixel's instance.
-    Returns:
-        terms [P] float64 (log den - log num per anchor) and, if ``want_grad``, grad [P, D] float32 =
-        dL/df (module docstring); else an empty grad.
+    Per pair: d2 from the tile's Gram block, the kernel value k and its derivative k'(d2) (times
+    valid_u valid_v, so padding pixels weigh nothing); k' is kept per tile (``dkt``) for the second
+    pass. The tile's row sums go to ``pden/pnum[J, rows of I]``
+    and (I < J) its column sums to ``pden/pnum[I, rows of J]``: every slot has one writer, and the
+    totals are summed over J in a fixed order afterwards, so nothing depends on the thread count.
     """
-    p = norms.shape[0]
     dim = ft.shape[0]
     a_pos = np.float32(a_pos)
     a_neg = np.float32(a_neg)
-    den = np.empty(p)
-    num = np.empty(p)
-    dks = np.empty((p if want_grad else 0, p), np.float32)  # k'(d2) per pair, for the second pass
-    for u in prange(p):
-        d2 = np.empty(p, np.float32)
-        _row(gram, norms, u, d2)
-        s, e = starts[u], ends[u]
-        s_num = 0.0
-        s_den = 0.0
-        if want_grad:
-            for v in range(s):
-                k, dk = _k(d2[v], a_neg, kind)
+    for t in prange(ti.size):
+        i = ti[t]
+        j = tj[t]
+        u0 = i * TILE
+        v0 = j * TILE
+        dk = dkt[t]
+        gram = np.zeros((TILE, TILE), np.float32)
+        for d0 in range(0, dim, LANES):
+            fu = ft[d0:d0 + LANES, u0:u0 + TILE].copy()
+            fv = ft[d0:d0 + LANES, v0:v0 + TILE].copy()
+            for u in range(0, TILE, 4):  # four rows per sweep: each loaded feature row serves four
+                g0 = gram[u]
+                g1 = gram[u + 1]
+                g2 = gram[u + 2]
+                g3 = gram[u + 3]
+                for dd in range(LANES):
+                    x0 = fu[dd, u]
+                    x1 = fu[dd, u + 1]
+                    x2 = fu[dd, u + 2]
+                    x3 = fu[dd, u + 3]
+                    frow = fv[dd]
+                    for v in range(TILE):
+                        f_v = frow[v]
+                        g0[v] += x0 * f_v
+                        g1[v] += x1 * f_v
+                        g2[v] += x2 * f_v
+                        g3[v] += x3 * f_v
+        nv = norms[v0:v0 + TILE]
+        bv = block[v0:v0 + TILE]
+        wv = valid[v0:v0 + TILE]
+        col_den = np.zeros(TILE, np.float32)
+        col_num = np.zeros(TILE, np.float32)
+        for u in range(TILE):
+            grow = gram[u]
+            nu = norms[u0 + u]
+            bu = block[u0 + u]
+            wu = valid[u0 + u]
+            drow = dk[u]
+            s_den = np.float32(0.0)
+            s_num = np.float32(0.0)
+            for v in range(TILE):
+                d2 = max(nu + nv[v] - np.float32(2.0) * grow[v], np.float32(0.0))
+                same = np.float32(1.0) if bv[v] == bu else np.float32(0.0)
+                a = a_neg + (a_pos - a_neg) * same
+                w = wu * wv[v]
+                e = _exp_neg(a * d2)
+                if kind == 0:
+                    k = e * w
+                    dkv = -a * k
+                else:
+                    k = _exp_unit(e) * w
+                    dkv = -a * e * k
+                drow[v] = dkv
                 s_den += k
-                dks[u, v] = dk
-            for v in range(s, e):  # the anchor's instance (branch-free ranges, so the loops vectorise)
-                k, dk = _k(d2[v], a_pos, kind)
-                s_num += k
-                dks[u, v] = dk
-            for v in range(e, p):
-                k, dk = _k(d2[v], a_neg, kind)
-                s_den += k
-                dks[u, v] = dk
-        else:
-            for v in range(s):
-                s_den += _k(d2[v], a_neg, kind)[0]
-            for v in range(s, e):
-                s_num += _k(d2[v], a_pos, kind)[0]
-            for v in range(e, p):
-                s_den += _k(d2[v], a_neg, kind)[0]
-        den[u] = s_den + s_num
-        num[u] = s_num
+                s_num += k * same
+                col_den[v] += k
+                col_num[v] += k * same
+            pden[j, u0 + u] = s_den
+            pnum[j, u0 + u] = s_num
+        if i != j:
+            for v in range(TILE):
+                pden[i, v0 + v] = col_den[v]
+                pnum[i, v0 + v] = col_num[v]
+
+
+@njit(parallel=True, cache=True, fastmath=PAIR_MATH)
+def _grad_tiles(ft, block, inv_den, inv_num, ti, tj, dkt, gpart):
+    """Second pass: per tile the gradient coefficients (module docstring)
+
+        c_uv = k'(d2_uv) (1/den_u + 1/den_v) - same_uv k'(d2_uv) (1/num_u + 1/num_v)
+
+    and their products with the features: rows of I get sum_v c_uv [f_v, 1] into ``gpart[J, :, rows]``,
+    rows of J (I < J) get sum_u c_uv [f_u, 1] into ``gpart[I, :, rows]`` (one writer per slot)."""
+    dim = ft.shape[0]
+    for t in prange(ti.size):
+        i = ti[t]
+        j = tj[t]
+        u0 = i * TILE
+        v0 = j * TILE
+        dk = dkt[t]
+        bv = block[v0:v0 + TILE]
+        idv = inv_den[v0:v0 + TILE]
+        inv = inv_num[v0:v0 + TILE]
+        coef = np.empty((TILE, TILE), np.float32)
+        for u in range(TILE):
+            du = inv_den[u0 + u]
+            nu = inv_num[u0 + u]
+            bu = block[u0 + u]
+            drow = dk[u]
+            crow = coef[u]
+            for v in range(TILE):
+                same = np.float32(1.0) if bv[v] == bu else np.float32(0.0)
+                crow[v] = drow[v] * (du + idv[v] - same * (nu + inv[v]))
+        fv = ft[:, v0:v0 + TILE].copy()
+        fu = ft[:, u0:u0 + TILE].copy()
+        out = gpart[j]
+        for u in range(0, TILE, 4):  # rows of I: sum_v c_uv [f_v, 1], four rows per sweep
+            c0 = coef[u]
+            c1 = coef[u + 1]
+            c2 = coef[u + 2]
+            c3 = coef[u + 3]
+            t0 = np.float32(0.0)
+            t1 = np.float32(0.0)
+            t2 = np.float32(0.0)
+            t3 = np.float32(0.0)
+            for v in range(TILE):
+                t0 += c0[v]
+                t1 += c1[v]
+                t2 += c2[v]
+                t3 += c3[v]
+            out[dim, u0 + u] = t0
+            out[dim, u0 + u + 1] = t1
+            out[dim, u0 + u + 2] = t2
+            out[dim, u0 + u + 3] = t3
+            for d in range(dim):
+                frow = fv[d]
+                t0 = np.float32(0.0)
+                t1 = np.float32(0.0)
+                t2 = np.float32(0.0)
+                t3 = np.float32(0.0)
+                for v in range(TILE):
+                    f_v = frow[v]
+                    t0 += c0[v] * f_v
+                    t1 += c1[v] * f_v
+                    t2 += c2[v] * f_v
+                    t3 += c3[v] * f_v
+                out[d, u0 + u] = t0
+                out[d, u0 + u + 1] = t1
+                out[d, u0 + u + 2] = t2
+                out[d, u0 + u + 3] = t3
+        if i != j:  # rows of J: sum_u c_uv [f_u, 1], accumulated transposed (vectors along v)
+            acc_t = np.zeros((dim + 1, TILE), np.float32)
+            for u in range(0, TILE, 4):
+                c0 = coef[u]
+                c1 = coef[u + 1]
+                c2 = coef[u + 2]
+                c3 = coef[u + 3]
+                for d in range(dim):
+                    x0 = fu[d, u]
+                    x1 = fu[d, u + 1]
+                    x2 = fu[d, u + 2]
+                    x3 = fu[d, u + 3]
+                    arow = acc_t[d]
+                    for v in range(TILE):
+                        arow[v] += x0 * c0[v] + x1 * c1[v] + x2 * c2[v] + x3 * c3[v]
+                arow = acc_t[dim]
+                for v in range(TILE):
+                    arow[v] += c0[v] + c1[v] + c2[v] + c3[v]
+            out = gpart[i]
+            for d in range(dim + 1):
+                arow = acc_t[d]
+                for v in range(TILE):
+                    out[d, v0 + v] = arow[v]
+
+
+@njit(parallel=True, cache=True, fastmath=PAIR_MATH)
+def _grad_sum(ft, gpart, scale, p, dim_out):
+    """dL/df_u = scale (total_u f_u - sum_v c_uv f_v), the per-tile parts summed in a fixed order."""
+    nb = gpart.shape[0]
+    dim = ft.shape[0]
+    pp = gpart.shape[2]
+    acc = np.zeros((dim + 1, pp), np.float32)
+    for d in prange(dim + 1):
+        row = acc[d]
+        for b in range(nb):
+            part = gpart[b, d]
+            for u in range(pp):
+                row[u] += part[u]
+    grad = np.empty((p, dim_out), np.float32)
+    total = acc[dim]
+    for u in range(p):
+        for d in range(dim_out):
+            grad[u, d] = scale * (total[u] * ft[d, u] - acc[d, u])
+    return grad
+
+
+_WORK = threading.local()
+
+
+def _workspace(nb: int, dp: int):
+    """Tile indices and scratch arrays for ``nb`` tiles per side and ``dp`` feature lanes, kept between
+    calls (per thread): fresh multi-megabyte arrays would cost a page fault per 4 KiB on every call."""
+    key = (nb, dp)
+    if getattr(_WORK, "key", None) != key:
+        ti, tj = np.triu_indices(nb)
+        pp = nb * TILE
+        _WORK.arrays = (ti.astype(np.int64), tj.astype(np.int64), np.empty((ti.size, TILE, TILE), np.float32),
+                        np.empty((nb, pp), np.float32), np.empty((nb, pp), np.float32),
+                        np.empty((nb, dp + 1, pp), np.float32))
+        _WORK.key = key
+    return _WORK.arrays
+
+
+def _pairs(f: np.ndarray, block: np.ndarray, a_pos: float, a_neg: float, kind: int, want_grad: bool):
+    """The loss terms [P] (float64, log den - log num per anchor) and, if ``want_grad``, dL/df [P, D]
+    float32 (module docstring) for features f [P, D] sorted by instance, ``block`` [P] their instance
+    index (non-decreasing). Pads P to a multiple of :data:`TILE` and D to one of :data:`LANES`."""
+    p, dim = f.shape
+    pp = -(-p // TILE) * TILE
+    dp = -(-dim // LANES) * LANES
+    ft = np.zeros((dp, pp), np.float32)
+    ft[:dim, :p] = f.T
+    norms = np.einsum("dp,dp->p", ft, ft)
+    blk = np.empty(pp, np.int64)
+    blk[:p] = block
+    blk[p:] = -1 - np.arange(pp - p)  # padding: an instance of its own each, and weight 0
+    valid = np.zeros(pp, np.float32)
+    valid[:p] = 1.0
+    nb = pp // TILE
+    ti, tj, dkt, pden, pnum, gpart = _workspace(nb, dp)
+    _pair_tiles(ft, norms, blk, valid, a_pos, a_neg, kind, ti, tj, dkt, pden, pnum)
+    den = pden[:, :p].sum(0, dtype=np.float64)
+    num = pnum[:, :p].sum(0, dtype=np.float64)
     terms = np.log(den) - np.log(num)
-    grad = np.zeros((p if want_grad else 0, dim), np.float32)
-    if want_grad:
-        inv_den = (1.0 / den).astype(np.float32)
-        inv_num = (1.0 / num).astype(np.float32)
-        scale = np.float32(2.0 / p)
-        for u in prange(p):
-            coef = dks[u]
-            s, e = starts[u], ends[u]
-            iu = inv_den[u]
-            nu = inv_num[u]
-            for v in range(s):
-                coef[v] *= iu + inv_den[v]
-            for v in range(s, e):
-                coef[v] *= iu + inv_den[v] - nu - inv_num[v]
-            for v in range(e, p):
-                coef[v] *= iu + inv_den[v]
-            total = np.float32(0.0)
-            for v in range(p):
-                total += coef[v]
-            for c in range(dim):
-                acc = np.float32(0.0)
-                row = ft[c]
-                for v in range(p):
-                    acc += coef[v] * row[v]
-                grad[u, c] = scale * (total * row[u] - acc)
-    return terms, grad
+    if not want_grad:
+        return terms, np.zeros((0, dim), np.float32)
+    inv_den = np.zeros(pp, np.float32)
+    inv_num = np.zeros(pp, np.float32)
+    inv_den[:p] = 1.0 / den
+    inv_num[:p] = 1.0 / num
+    _grad_tiles(ft, blk, inv_den, inv_num, ti, tj, dkt, gpart)
+    return terms, _grad_sum(ft, gpart, np.float32(2.0 / p), p, dim)
 
 
 def kernel_constants(kernel: str, temperature: float, temperature_pos: float, temperature_neg: float):
@@ -148,27 +319,32 @@ def kernel_constants(kernel: str, temperature: float, temperature_pos: float, te
     raise Trace3DError(f"contrastive loss: unknown kernel {kernel!r}.")
 
 
+def loss_and_grad(features: np.ndarray, labels: np.ndarray, consts: tuple, want_grad: bool = True):
+    """The contrastive loss (float) and, if ``want_grad``, its gradient [P, D] float32 w.r.t. ``features``
+    ([P, D] float32, any order; ``labels`` [P] int) by the fused kernel, without torch or autograd:
+    the lifting's fast step calls it directly, :func:`fused_contrastive_loss` wraps it for autograd."""
+    order = np.argsort(labels, kind="stable")
+    lab = labels[order]
+    block = np.zeros(lab.size, np.int64)
+    np.cumsum(lab[1:] != lab[:-1], out=block[1:])
+    f = np.ascontiguousarray(features[order], dtype=np.float32)
+    a_pos, a_neg, kind = consts
+    terms, grad = _pairs(f, block, a_pos, a_neg, kind, want_grad)
+    if not want_grad:
+        return float(terms.mean()), None
+    out = np.empty_like(grad)
+    out[order] = grad
+    return float(terms.mean()), out
+
+
 class _FusedLoss(torch.autograd.Function):
     @staticmethod
     def forward(ctx, features: Tensor, labels: Tensor, consts: tuple) -> Tensor:
-        lab, order = torch.sort(labels, stable=True)
-        lab_np = lab.numpy()
-        # block bounds of each sorted pixel's instance
-        change = np.flatnonzero(np.diff(lab_np)) + 1
-        bounds = np.concatenate([[0], change, [lab_np.size]]).astype(np.int64)
-        block = np.repeat(np.arange(bounds.size - 1), np.diff(bounds))
-        starts, ends = bounds[block], bounds[block + 1]
-        f = features.detach()[order].float()
-        gram = f @ f.t()
-        a_pos, a_neg, kind = consts
         want = features.requires_grad
-        terms, grad = _pairs(gram.numpy(), torch.diagonal(gram).contiguous().numpy(), f.t().contiguous().numpy(),
-                             starts, ends, a_pos, a_neg, kind, want)
+        loss, grad = loss_and_grad(features.detach().float().numpy(), labels.numpy(), consts, want)
         if want:
-            out = torch.empty_like(features)
-            out[order] = torch.from_numpy(grad).to(features.dtype)
-            ctx.save_for_backward(out)
-        return torch.tensor(float(terms.mean()), dtype=features.dtype)
+            ctx.save_for_backward(torch.from_numpy(grad).to(features.dtype))
+        return torch.tensor(loss, dtype=features.dtype)
 
     @staticmethod
     def backward(ctx, v_loss: Tensor):

@@ -170,6 +170,26 @@ def _scatter_rows(indptr, indices, weights, which, v_out, n):
     return grad
 
 
+@njit(parallel=True, cache=True)
+def scatter_rows_add(indptr, indices, weights, which, v_out, grad, parts):
+    """grad[g] += w v_out[q] for every entry (row ``which[q]``, Gaussian g, weight w): the backward of a
+    row gather, into a caller's buffer. ``parts`` threads (e.g. ``numba.get_num_threads()``) split the
+    Gaussians into ranges and each walks all the entries in order, so every Gaussian's sum has the same
+    order, that of :func:`_scatter_rows`, whatever the split."""
+    n = grad.shape[0]
+    for part in prange(parts):
+        lo = n * part // parts
+        hi = n * (part + 1) // parts
+        for q in range(which.size):
+            r = which[q]
+            for e in range(indptr[r], indptr[r + 1]):
+                g = indices[e]
+                if g >= lo and g < hi:
+                    w = weights[e]
+                    for c in range(v_out.shape[1]):
+                        grad[g, c] += w * v_out[q, c]
+
+
 class _RowsRender(torch.autograd.Function):
     @staticmethod
     def forward(ctx, features: Tensor, weights: PixelWeights, which: np.ndarray) -> Tensor:
