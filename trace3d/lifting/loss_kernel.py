@@ -239,24 +239,76 @@ def _grad_tiles(ft, block, inv_den, inv_num, ti, tj, dkt, gpart):
                     out[d, v0 + v] = arow[v]
 
 
-@njit(parallel=True, cache=True, fastmath=PAIR_MATH)
-def _grad_sum(ft, gpart, scale, p, dim_out):
-    """dL/df_u = scale (total_u f_u - sum_v c_uv f_v), the per-tile parts summed in a fixed order."""
+@njit(cache=True)
+def _prepare(features, labels, pp, dp):
+    """Sort the P pixels by instance (stable) and lay them out for the tile kernels: f^T padded to
+    [dp, pp] with zeros, squared norms, instance index per sorted pixel (padding: an instance of its
+    own each) and validity (1 for the P pixels, 0 for padding)."""
+    p, dim = features.shape
+    order = np.argsort(labels, kind="mergesort")
+    ft = np.zeros((dp, pp), np.float32)
+    norms = np.zeros(pp, np.float32)
+    block = np.empty(pp, np.int64)
+    valid = np.zeros(pp, np.float32)
+    b = 0
+    for u in range(p):
+        src = order[u]
+        if u > 0 and labels[src] != labels[order[u - 1]]:
+            b += 1
+        block[u] = b
+        valid[u] = 1.0
+        acc = np.float32(0.0)
+        for d in range(dim):
+            x = np.float32(features[src, d])
+            ft[d, u] = x
+            acc += x * x
+        norms[u] = acc
+    for u in range(p, pp):
+        block[u] = -1 - (u - p)
+    return order, ft, norms, block, valid
+
+
+@njit(cache=True)
+def _sums(pden, pnum, p):
+    """Per anchor den and num (the tiles' partial sums, in float64, in tile order) and the loss."""
+    nb, pp = pden.shape
+    inv_den = np.zeros(pp, np.float32)
+    inv_num = np.zeros(pp, np.float32)
+    loss = 0.0
+    for u in range(p):
+        den = 0.0
+        num = 0.0
+        for b in range(nb):
+            den += pden[b, u]
+            num += pnum[b, u]
+        loss += np.log(den) - np.log(num)
+        inv_den[u] = 1.0 / den
+        inv_num[u] = 1.0 / num
+    return loss / p, inv_den, inv_num
+
+
+@njit(cache=True, fastmath=PAIR_MATH)
+def _grad_sum(ft, gpart, order, dim_out):
+    """dL/df_u = 2/P (total_u f_u - sum_v c_uv f_v), the per-tile parts added in tile order, written
+    back in the pixels' original order."""
     nb = gpart.shape[0]
     dim = ft.shape[0]
     pp = gpart.shape[2]
+    p = order.size
     acc = np.zeros((dim + 1, pp), np.float32)
-    for d in prange(dim + 1):
-        row = acc[d]
-        for b in range(nb):
+    for b in range(nb):
+        for d in range(dim + 1):
             part = gpart[b, d]
+            row = acc[d]
             for u in range(pp):
                 row[u] += part[u]
+    scale = np.float32(2.0 / p)
     grad = np.empty((p, dim_out), np.float32)
     total = acc[dim]
     for u in range(p):
+        dst = order[u]
         for d in range(dim_out):
-            grad[u, d] = scale * (total[u] * ft[d, u] - acc[d, u])
+            grad[dst, d] = scale * (total[u] * ft[d, u] - acc[d, u])
     return grad
 
 
@@ -277,35 +329,23 @@ def _workspace(nb: int, dp: int):
     return _WORK.arrays
 
 
-def _pairs(f: np.ndarray, block: np.ndarray, a_pos: float, a_neg: float, kind: int, want_grad: bool):
-    """The loss terms [P] (float64, log den - log num per anchor) and, if ``want_grad``, dL/df [P, D]
-    float32 (module docstring) for features f [P, D] sorted by instance, ``block`` [P] their instance
-    index (non-decreasing). Pads P to a multiple of :data:`TILE` and D to one of :data:`LANES`."""
-    p, dim = f.shape
+def loss_and_grad(features: np.ndarray, labels: np.ndarray, consts: tuple, want_grad: bool = True):
+    """The contrastive loss (float) and, if ``want_grad``, its gradient [P, D] float32 w.r.t. ``features``
+    ([P, D] float, any order; ``labels`` [P] int) by the fused kernel, without torch or autograd:
+    the lifting's fast step calls it directly, :func:`fused_contrastive_loss` wraps it for autograd.
+    Pads P to a multiple of :data:`TILE` and D to one of :data:`LANES` (module docstring)."""
+    p, dim = features.shape
     pp = -(-p // TILE) * TILE
     dp = -(-dim // LANES) * LANES
-    ft = np.zeros((dp, pp), np.float32)
-    ft[:dim, :p] = f.T
-    norms = np.einsum("dp,dp->p", ft, ft)
-    blk = np.empty(pp, np.int64)
-    blk[:p] = block
-    blk[p:] = -1 - np.arange(pp - p)  # padding: an instance of its own each, and weight 0
-    valid = np.zeros(pp, np.float32)
-    valid[:p] = 1.0
-    nb = pp // TILE
-    ti, tj, dkt, pden, pnum, gpart = _workspace(nb, dp)
-    _pair_tiles(ft, norms, blk, valid, a_pos, a_neg, kind, ti, tj, dkt, pden, pnum)
-    den = pden[:, :p].sum(0, dtype=np.float64)
-    num = pnum[:, :p].sum(0, dtype=np.float64)
-    terms = np.log(den) - np.log(num)
+    order, ft, norms, block, valid = _prepare(features, np.ascontiguousarray(labels, np.int64), pp, dp)
+    ti, tj, dkt, pden, pnum, gpart = _workspace(pp // TILE, dp)
+    a_pos, a_neg, kind = consts
+    _pair_tiles(ft, norms, block, valid, a_pos, a_neg, kind, ti, tj, dkt, pden, pnum)
+    loss, inv_den, inv_num = _sums(pden, pnum, p)
     if not want_grad:
-        return terms, np.zeros((0, dim), np.float32)
-    inv_den = np.zeros(pp, np.float32)
-    inv_num = np.zeros(pp, np.float32)
-    inv_den[:p] = 1.0 / den
-    inv_num[:p] = 1.0 / num
-    _grad_tiles(ft, blk, inv_den, inv_num, ti, tj, dkt, gpart)
-    return terms, _grad_sum(ft, gpart, np.float32(2.0 / p), p, dim)
+        return float(loss), None
+    _grad_tiles(ft, block, inv_den, inv_num, ti, tj, dkt, gpart)
+    return float(loss), _grad_sum(ft, gpart, order, dim)
 
 
 def kernel_constants(kernel: str, temperature: float, temperature_pos: float, temperature_neg: float):
@@ -317,24 +357,6 @@ def kernel_constants(kernel: str, temperature: float, temperature_pos: float, te
     if kernel == "printed":
         return float(temperature), float(temperature), 1
     raise Trace3DError(f"contrastive loss: unknown kernel {kernel!r}.")
-
-
-def loss_and_grad(features: np.ndarray, labels: np.ndarray, consts: tuple, want_grad: bool = True):
-    """The contrastive loss (float) and, if ``want_grad``, its gradient [P, D] float32 w.r.t. ``features``
-    ([P, D] float32, any order; ``labels`` [P] int) by the fused kernel, without torch or autograd:
-    the lifting's fast step calls it directly, :func:`fused_contrastive_loss` wraps it for autograd."""
-    order = np.argsort(labels, kind="stable")
-    lab = labels[order]
-    block = np.zeros(lab.size, np.int64)
-    np.cumsum(lab[1:] != lab[:-1], out=block[1:])
-    f = np.ascontiguousarray(features[order], dtype=np.float32)
-    a_pos, a_neg, kind = consts
-    terms, grad = _pairs(f, block, a_pos, a_neg, kind, want_grad)
-    if not want_grad:
-        return float(terms.mean()), None
-    out = np.empty_like(grad)
-    out[order] = grad
-    return float(terms.mean()), out
 
 
 class _FusedLoss(torch.autograd.Function):
