@@ -3,8 +3,9 @@
 Figures (one JSON object), on a fitted room (scene/, poses/, gaussians/, consistent instance maps):
 
 - ``sparse_ms`` / ``raster_ms``: ms per iteration (sample pixels of one view, render them, loss,
-  backward, Adam step), best-of median over repeats, for the preset's pixel count and for ``pixels``
-  of the measured step params, both with the step's loss (the fused kernel unless ``fused: false``);
+  backward, Adam step), median over repeats (the sparse path timed over 150 iterations after 60 of
+  warm-up), for the preset's pixel count and for ``pixels`` of the measured step params, both with
+  the step's loss (the fused kernel unless ``fused: false``);
   ``lift_speedup`` = raster_ms / sparse_ms (goal >= 20, whole iteration); ``sparse_autograd_ms``: the
   sparse path with the fused loss through autograd instead of the hand-written fast step (its twin);
   ``sparse_torch_loss_ms``: the sparse path with the torch autograd loss (the fused kernel's twin);
@@ -104,9 +105,10 @@ def run_bench(room: Path, quick: bool = False, params: dict | None = None) -> di
     for pixels in sorted({step.pixels, 4096}):
         p = from_mapping(ContrastiveParams, {**to_dict(step), "pixels": pixels, "iterations": 1, "query": {}})
         trainer = ContrastiveTrainer(model, train[:2] if quick else train, maps[:2] if quick else maps, p)
-        trainer.step("sparse")  # warm-up
+        for _ in range(repeats * 4):  # warm-up: the first pass over the views' pools runs from cold memory
+            trainer.step("sparse")
         trainer.step("raster")
-        sparse_ms = _time_iterations(trainer, "sparse", repeats * 4)
+        sparse_ms = _time_iterations(trainer, "sparse", repeats * 10)
         raster_ms = _time_iterations(trainer, "raster", repeats)
         autograd_ms = _time_autograd(trainer, repeats * 2)
         trainer.params.fused = False  # the torch autograd loss (the fused kernel's twin) on the sparse path

@@ -71,8 +71,32 @@ def _exp_unit(e):
     return p * np.float32(1.6487212707001282)
 
 
+@njit(inline="always", fastmath=PAIR_MATH)
+def _kernel_span(grow, nu, nv, wu, wv, a, kind, lo, hi, drow, col_den, col_num, positive):
+    """Kernel values over the tile columns [lo, hi) of one anchor row, all with the same scale ``a``
+    (inside or outside the anchor's instance): k' into ``drow``, k into the column sums (and the
+    numerator's column sums if ``positive``); returns the row's sum of k."""
+    total = np.float32(0.0)
+    for v in range(lo, hi):
+        d2 = max(nu + nv[v] - np.float32(2.0) * grow[v], np.float32(0.0))
+        e = _exp_neg(a * d2)
+        w = wu * wv[v]
+        if kind == 0:
+            k = e * w
+            dkv = -a * k
+        else:
+            k = _exp_unit(e) * w
+            dkv = -a * e * k
+        drow[v] = dkv
+        total += k
+        col_den[v] += k
+        if positive:
+            col_num[v] += k
+    return total
+
+
 @njit(parallel=True, cache=True, fastmath=PAIR_MATH)
-def _pair_tiles(ft, norms, block, valid, a_pos, a_neg, kind, ti, tj, dkt, pden, pnum):
+def _pair_tiles(ft, norms, starts, ends, valid, a_pos, a_neg, kind, ti, tj, dkt, pden, pnum):
     """First pass, over the tiles (I, J), I <= J, of the symmetric pair matrix.
 
     Per pair: d2 from the tile's Gram block, the kernel value k and its derivative k'(d2) (times
@@ -112,36 +136,21 @@ def _pair_tiles(ft, norms, block, valid, a_pos, a_neg, kind, ti, tj, dkt, pden, 
                         g2[v] += x2 * f_v
                         g3[v] += x3 * f_v
         nv = norms[v0:v0 + TILE]
-        bv = block[v0:v0 + TILE]
         wv = valid[v0:v0 + TILE]
         col_den = np.zeros(TILE, np.float32)
         col_num = np.zeros(TILE, np.float32)
         for u in range(TILE):
             grow = gram[u]
             nu = norms[u0 + u]
-            bu = block[u0 + u]
             wu = valid[u0 + u]
             drow = dk[u]
-            s_den = np.float32(0.0)
-            s_num = np.float32(0.0)
-            for v in range(TILE):
-                d2 = max(nu + nv[v] - np.float32(2.0) * grow[v], np.float32(0.0))
-                same = np.float32(1.0) if bv[v] == bu else np.float32(0.0)
-                a = a_neg + (a_pos - a_neg) * same
-                w = wu * wv[v]
-                e = _exp_neg(a * d2)
-                if kind == 0:
-                    k = e * w
-                    dkv = -a * k
-                else:
-                    k = _exp_unit(e) * w
-                    dkv = -a * e * k
-                drow[v] = dkv
-                s_den += k
-                s_num += k * same
-                col_den[v] += k
-                col_num[v] += k * same
-            pden[j, u0 + u] = s_den
+            # the anchor's instance within this tile: [lo, hi) (pixels are sorted by instance)
+            lo = min(max(starts[u0 + u] - v0, 0), TILE)
+            hi = min(max(ends[u0 + u] - v0, 0), TILE)
+            s_num = _kernel_span(grow, nu, nv, wu, wv, a_pos, kind, lo, hi, drow, col_den, col_num, True)
+            s_den = _kernel_span(grow, nu, nv, wu, wv, a_neg, kind, 0, lo, drow, col_den, col_num, False)
+            s_den += _kernel_span(grow, nu, nv, wu, wv, a_neg, kind, hi, TILE, drow, col_den, col_num, False)
+            pden[j, u0 + u] = s_den + s_num
             pnum[j, u0 + u] = s_num
         if i != j:
             for v in range(TILE):
@@ -150,7 +159,7 @@ def _pair_tiles(ft, norms, block, valid, a_pos, a_neg, kind, ti, tj, dkt, pden, 
 
 
 @njit(parallel=True, cache=True, fastmath=PAIR_MATH)
-def _grad_tiles(ft, block, inv_den, inv_num, ti, tj, dkt, gpart):
+def _grad_tiles(ft, starts, ends, inv_den, inv_num, ti, tj, dkt, gpart):
     """Second pass: per tile the gradient coefficients (module docstring)
 
         c_uv = k'(d2_uv) (1/den_u + 1/den_v) - same_uv k'(d2_uv) (1/num_u + 1/num_v)
@@ -164,19 +173,22 @@ def _grad_tiles(ft, block, inv_den, inv_num, ti, tj, dkt, gpart):
         u0 = i * TILE
         v0 = j * TILE
         dk = dkt[t]
-        bv = block[v0:v0 + TILE]
         idv = inv_den[v0:v0 + TILE]
         inv = inv_num[v0:v0 + TILE]
         coef = np.empty((TILE, TILE), np.float32)
         for u in range(TILE):
             du = inv_den[u0 + u]
             nu = inv_num[u0 + u]
-            bu = block[u0 + u]
             drow = dk[u]
             crow = coef[u]
-            for v in range(TILE):
-                same = np.float32(1.0) if bv[v] == bu else np.float32(0.0)
-                crow[v] = drow[v] * (du + idv[v] - same * (nu + inv[v]))
+            lo = min(max(starts[u0 + u] - v0, 0), TILE)
+            hi = min(max(ends[u0 + u] - v0, 0), TILE)
+            for v in range(lo):
+                crow[v] = drow[v] * (du + idv[v])
+            for v in range(lo, hi):
+                crow[v] = drow[v] * (du + idv[v] - (nu + inv[v]))
+            for v in range(hi, TILE):
+                crow[v] = drow[v] * (du + idv[v])
         fv = ft[:, v0:v0 + TILE].copy()
         fu = ft[:, u0:u0 + TILE].copy()
         out = gpart[j]
@@ -242,20 +254,18 @@ def _grad_tiles(ft, block, inv_den, inv_num, ti, tj, dkt, gpart):
 @njit(cache=True)
 def _prepare(features, labels, pp, dp):
     """Sort the P pixels by instance (stable) and lay them out for the tile kernels: f^T padded to
-    [dp, pp] with zeros, squared norms, instance index per sorted pixel (padding: an instance of its
-    own each) and validity (1 for the P pixels, 0 for padding)."""
+    [dp, pp] with zeros, squared norms, the bounds [start, end) of each sorted pixel's instance
+    (padding pixels: an instance of their own each) and validity (1 for the P pixels, 0 for padding)."""
     p, dim = features.shape
     order = np.argsort(labels, kind="mergesort")
     ft = np.zeros((dp, pp), np.float32)
     norms = np.zeros(pp, np.float32)
-    block = np.empty(pp, np.int64)
+    starts = np.empty(pp, np.int64)
+    ends = np.empty(pp, np.int64)
     valid = np.zeros(pp, np.float32)
-    b = 0
     for u in range(p):
         src = order[u]
-        if u > 0 and labels[src] != labels[order[u - 1]]:
-            b += 1
-        block[u] = b
+        starts[u] = starts[u - 1] if u > 0 and labels[src] == labels[order[u - 1]] else u
         valid[u] = 1.0
         acc = np.float32(0.0)
         for d in range(dim):
@@ -263,9 +273,12 @@ def _prepare(features, labels, pp, dp):
             ft[d, u] = x
             acc += x * x
         norms[u] = acc
+    for u in range(p - 1, -1, -1):
+        ends[u] = ends[u + 1] if u + 1 < p and starts[u + 1] == starts[u] else u + 1
     for u in range(p, pp):
-        block[u] = -1 - (u - p)
-    return order, ft, norms, block, valid
+        starts[u] = u
+        ends[u] = u + 1
+    return order, ft, norms, starts, ends, valid
 
 
 @njit(cache=True)
@@ -281,7 +294,7 @@ def _sums(pden, pnum, p):
         for b in range(nb):
             den += pden[b, u]
             num += pnum[b, u]
-        loss += np.log(den) - np.log(num)
+        loss += np.log(den / num)
         inv_den[u] = 1.0 / den
         inv_num[u] = 1.0 / num
     return loss / p, inv_den, inv_num
@@ -337,14 +350,14 @@ def loss_and_grad(features: np.ndarray, labels: np.ndarray, consts: tuple, want_
     p, dim = features.shape
     pp = -(-p // TILE) * TILE
     dp = -(-dim // LANES) * LANES
-    order, ft, norms, block, valid = _prepare(features, np.ascontiguousarray(labels, np.int64), pp, dp)
+    order, ft, norms, starts, ends, valid = _prepare(features, np.ascontiguousarray(labels, np.int64), pp, dp)
     ti, tj, dkt, pden, pnum, gpart = _workspace(pp // TILE, dp)
     a_pos, a_neg, kind = consts
-    _pair_tiles(ft, norms, block, valid, a_pos, a_neg, kind, ti, tj, dkt, pden, pnum)
+    _pair_tiles(ft, norms, starts, ends, valid, a_pos, a_neg, kind, ti, tj, dkt, pden, pnum)
     loss, inv_den, inv_num = _sums(pden, pnum, p)
     if not want_grad:
         return float(loss), None
-    _grad_tiles(ft, block, inv_den, inv_num, ti, tj, dkt, gpart)
+    _grad_tiles(ft, starts, ends, inv_den, inv_num, ti, tj, dkt, gpart)
     return float(loss), _grad_sum(ft, gpart, order, dim)
 
 

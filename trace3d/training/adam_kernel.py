@@ -27,7 +27,7 @@ from numba import njit, prange
 from ..errors import Trace3DError
 
 
-@njit(parallel=True, cache=True, fastmath={"nsz"})
+@njit(parallel=True, cache=True, fastmath=True)
 def _adam_clear(param, grad, m, v, step_size, one_minus_b1, b2, one_minus_b2, inv_bc2_sqrt, eps):
     """torch's Adam update element by element, then grad = 0."""
     # 1 - b1 and 1 - b2 come in from float64 (1 - float32(0.999) would be off by 5e-5 relative)
