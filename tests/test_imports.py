@@ -47,3 +47,19 @@ def test_cli_sets_the_omp_wait_policy_before_the_library_loads():
                             timeout=120)
     assert result.returncode == 0, result.stderr[-3000:]
     assert result.stdout.strip().splitlines()[-1] == "PASSIVE"
+
+
+def test_cli_lets_only_the_lift_commands_spin():
+    env = {k: v for k, v in os.environ.items() if k != "GOMP_SPINCOUNT"}
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
+    commands = [["lift", "--scene", "s", "--poses", "p", "--gaussians", "g", "--out", "o"], ["bench", "lift"],
+                ["gaussians", "--scene", "s", "--poses", "p", "--out", "o"]]
+    script = ("import json, os, sys; from trace3d import cli\n"
+              "for argv in json.loads(sys.argv[1]):\n"
+              "    os.environ.pop('GOMP_SPINCOUNT', None)\n"
+              "    cli._command_environment(cli.build_parser().parse_args(argv))\n"
+              "    print(os.environ.get('GOMP_SPINCOUNT'))")
+    result = subprocess.run([sys.executable, "-c", script, json.dumps(commands)], cwd=REPO, env=env,
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert result.stdout.strip().splitlines()[-3:] == ["10000", "10000", "None"]
