@@ -33,7 +33,7 @@ from numba import njit, prange
 from torch import Tensor
 
 from ..errors import Trace3DError
-from ..render.kernels import exp_neg
+from ..render.kernels import exp_neg, exp_taylor8
 
 # Reassociation lets the per-row sums vectorise (a fixed order per compiled loop: results stay
 # deterministic and independent of the thread count); the exp keeps value-preserving flags only.
@@ -58,17 +58,7 @@ LANES = 16  # the feature dimension is padded to a multiple of this (zeros chang
 def _exp_unit(e):
     """exp(e) for e in [0, 1] in float32: exp(1/2) exp(e - 1/2), Taylor degree 8 on |x| <= 1/2
     (truncation < 1e-8 relative; the printed kernel's outer exp)."""
-    x = e - np.float32(0.5)
-    p = np.float32(1.0 / 40320.0)
-    p = p * x + np.float32(1.0 / 5040.0)
-    p = p * x + np.float32(1.0 / 720.0)
-    p = p * x + np.float32(1.0 / 120.0)
-    p = p * x + np.float32(1.0 / 24.0)
-    p = p * x + np.float32(1.0 / 6.0)
-    p = p * x + np.float32(0.5)
-    p = p * x + np.float32(1.0)
-    p = p * x + np.float32(1.0)
-    return p * np.float32(1.6487212707001282)
+    return exp_taylor8(e - np.float32(0.5)) * np.float32(1.6487212707001282)
 
 
 @njit(inline="always", fastmath=PAIR_MATH)
