@@ -37,24 +37,24 @@ def _labels_dir(room: Path) -> Path:
                        f"run the merge step for this room first.")
 
 
-def _time_iterations(trainer, path: str, count: int) -> float:
+def _time_calls(step, count: int) -> float:
+    """Median ms of ``count`` calls of ``step()``."""
     times = []
     for _ in range(count):
         start = time.perf_counter()
-        trainer.step(path)
+        step()
         times.append(time.perf_counter() - start)
     return float(np.median(times)) * 1000.0
+
+
+def _time_iterations(trainer, path: str, count: int) -> float:
+    return _time_calls(lambda: trainer.step(path), count)
 
 
 def _time_autograd(trainer, count: int) -> float:
     # the sparse path through autograd (the fast step's twin: same loss kernel, gather and Adam)
     trainer.autograd_step("sparse")
-    times = []
-    for _ in range(count):
-        start = time.perf_counter()
-        trainer.autograd_step("sparse")
-        times.append(time.perf_counter() - start)
-    return float(np.median(times)) * 1000.0
+    return _time_calls(lambda: trainer.autograd_step("sparse"), count)
 
 
 def _time_render_only(trainer, path: str, count: int) -> float:

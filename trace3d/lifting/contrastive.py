@@ -191,8 +191,7 @@ class PixelPools:
         splats = model.splats()
         self.cameras: list[Camera] = []
         self.pixels: list[np.ndarray] = []
-        self.labels: list[Tensor] = []
-        self.labels_np: list[np.ndarray] = []
+        self.labels: list[np.ndarray] = []
         self.weights = []
         bar = tqdm(list(zip(cameras, label_maps)), desc="pixel weights", disable=not progress, leave=False,
                    mininterval=0.5 if sys.stderr.isatty() else 30.0)
@@ -204,8 +203,7 @@ class PixelPools:
             pool = np.sort(rng.choice(labelled, size=min(pool_pixels, labelled.size), replace=False))
             self.cameras.append(cam)
             self.pixels.append(pool)
-            self.labels_np.append(flat[pool].astype(np.int64))
-            self.labels.append(torch.from_numpy(self.labels_np[-1]))
+            self.labels.append(flat[pool].astype(np.int64))
             if with_weights:
                 with torch.no_grad():
                     self.weights.append(pixel_weights(splats, cam, pool, near=near))
@@ -265,7 +263,7 @@ class ContrastiveTrainer:
             rendered = render_pixels(self.model, self.pools.cameras[v], self.features, self.pools.pixels[v][rows],
                                      self.params.near)
         loss = fused_contrastive_loss if self.params.fused else contrastive_loss
-        return loss(rendered, self.pools.labels[v][torch.from_numpy(rows)], **self.kwargs)
+        return loss(rendered, torch.from_numpy(self.pools.labels[v][rows]), **self.kwargs)
 
     def step(self, path: str | None = None) -> float:
         if (path or self.params.path) == "sparse" and self.params.fused:
@@ -282,7 +280,7 @@ class ContrastiveTrainer:
         v, rows = self.sample()
         w = self.pools.weights[v]
         rendered = _gather_rows(w.indptr, w.indices, w.weights, rows, self.features.detach().numpy())
-        loss, g_rendered = loss_and_grad(rendered, self.pools.labels_np[v][rows], self._consts)
+        loss, g_rendered = loss_and_grad(rendered, self.pools.labels[v][rows], self._consts)
         scatter_rows_add(w.indptr, w.indices, w.weights, rows, g_rendered, self._grad, numba.get_num_threads())
         self.optimizer.step(self._grad)  # leaves the buffer zero
         return loss

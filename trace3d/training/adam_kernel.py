@@ -68,14 +68,13 @@ class CpuAdam:
         self.exp_avg_sq = np.zeros(tuple(param.shape), np.float32)
         self.steps = 0
 
-    def _constants(self) -> tuple:
-        self.steps += 1
-        return (self.lr / (1.0 - self.b1 ** self.steps), 1.0 - self.b1, self.b2, 1.0 - self.b2,
-                1.0 / math.sqrt(1.0 - self.b2 ** self.steps), self.eps)
-
     def step(self, grad: np.ndarray) -> None:
         """One Adam step with ``grad`` ([N, D] float32, C-contiguous), which is zero afterwards."""
         if grad.shape != self.exp_avg.shape or grad.dtype != np.float32 or not grad.flags.c_contiguous:
             raise Trace3DError(f"CpuAdam: gradient must be C-contiguous float32 {self.exp_avg.shape}, got "
                                f"{grad.dtype} {grad.shape}.")
-        _adam_clear(self.param.detach().numpy(), grad, self.exp_avg, self.exp_avg_sq, *self._constants())
+        self.steps += 1
+        step_size = self.lr / (1.0 - self.b1 ** self.steps)
+        inv_bc2_sqrt = 1.0 / math.sqrt(1.0 - self.b2 ** self.steps)
+        _adam_clear(self.param.detach().numpy(), grad, self.exp_avg, self.exp_avg_sq, step_size, 1.0 - self.b1,
+                    self.b2, 1.0 - self.b2, inv_bc2_sqrt, self.eps)
