@@ -33,7 +33,7 @@ from numba import njit, prange
 from torch import Tensor
 
 from ..errors import Trace3DError
-from ..render.kernels import exp_neg, exp_taylor8
+from ..render.kernels import exp_taylor8
 
 # Reassociation lets the per-row sums vectorise (a fixed order per compiled loop: results stay
 # deterministic and independent of the thread count); the exp keeps value-preserving flags only.
@@ -42,16 +42,28 @@ PAIR_MATH = {"nsz", "reassoc", "contract", "arcp"}
 
 @njit(inline="always", fastmath={"nsz"})
 def _exp_neg(s):
-    """exp(-s) for s >= 0 in float32, vectorisable, down to exp(-80): the rasterizer's
-    :func:`trace3d.render.kernels.exp_neg` (exact to ~1e-6, but clamped at exp(-20), where far negative
-    pairs must weigh ~0) taken at s / 4 and raised to the 4th power (relative error ~4e-6)."""
-    e = exp_neg(s * np.float32(0.25))
-    e2 = e * e
-    return e2 * e2
+    """exp(-s) for s >= 0 in float32, vectorisable, down to exp(-80) (smaller values read as exp(-80)):
+    s = (n - y') ln 2 with n the nearest integer of s log2(e), e^y by :func:`exp_taylor8` on |y| <= ln2 / 2,
+    and 2^-n straight into the exponent bits (relative error ~4e-6, from rounding s log2(e))."""
+    s = min(s, np.float32(80.0))
+    t = s * np.float32(1.4426950408889634)
+    n = np.int32(t + np.float32(0.5))
+    y = (np.float32(n) - t) * np.float32(0.6931471805599453)
+    return exp_taylor8(y) * np.int32((127 - n) << 23).view(np.float32)
 
 
 TILE = 64  # pixels per side of a pair tile (the sample is padded to a multiple of it)
 LANES = 16  # the feature dimension is padded to a multiple of this (zeros change no distance)
+
+
+@njit(inline="always", fastmath=PAIR_MATH)
+def _dot16(f, x, o, v):
+    """sum_k x[o + k] f[o + k, v] over k < 16 written out, so that a loop over v around it vectorises
+    along v with the 16 products in registers (a loop over k with += spills the partial sums)."""
+    return (x[o + 0] * f[o + 0, v] + x[o + 1] * f[o + 1, v] + x[o + 2] * f[o + 2, v] + x[o + 3] * f[o + 3, v] +
+            x[o + 4] * f[o + 4, v] + x[o + 5] * f[o + 5, v] + x[o + 6] * f[o + 6, v] + x[o + 7] * f[o + 7, v] +
+            x[o + 8] * f[o + 8, v] + x[o + 9] * f[o + 9, v] + x[o + 10] * f[o + 10, v] + x[o + 11] * f[o + 11, v] +
+            x[o + 12] * f[o + 12, v] + x[o + 13] * f[o + 13, v] + x[o + 14] * f[o + 14, v] + x[o + 15] * f[o + 15, v])
 
 
 @njit(inline="always", fastmath=PAIR_MATH)
@@ -104,27 +116,18 @@ def _pair_tiles(ft, norms, starts, ends, valid, a_pos, a_neg, kind, ti, tj, dkt,
         u0 = i * TILE
         v0 = j * TILE
         dk = dkt[t]
-        gram = np.zeros((TILE, TILE), np.float32)
-        for d0 in range(0, dim, LANES):
-            fu = ft[d0:d0 + LANES, u0:u0 + TILE].copy()
-            fv = ft[d0:d0 + LANES, v0:v0 + TILE].copy()
-            for u in range(0, TILE, 4):  # four rows per sweep: each loaded feature row serves four
-                g0 = gram[u]
-                g1 = gram[u + 1]
-                g2 = gram[u + 2]
-                g3 = gram[u + 3]
-                for dd in range(LANES):
-                    x0 = fu[dd, u]
-                    x1 = fu[dd, u + 1]
-                    x2 = fu[dd, u + 2]
-                    x3 = fu[dd, u + 3]
-                    frow = fv[dd]
-                    for v in range(TILE):
-                        f_v = frow[v]
-                        g0[v] += x0 * f_v
-                        g1[v] += x1 * f_v
-                        g2[v] += x2 * f_v
-                        g3[v] += x3 * f_v
+        # the tile's Gram block, one row at a time: 16 feature lanes per pass written out (_dot16)
+        gram = np.empty((TILE, TILE), np.float32)
+        fv = ft[:, v0:v0 + TILE].copy()
+        fut = ft[:, u0:u0 + TILE].T.copy()
+        for u in range(TILE):
+            x = fut[u]
+            grow = gram[u]
+            for v in range(TILE):
+                grow[v] = _dot16(fv, x, 0, v)
+            for o in range(LANES, dim, LANES):
+                for v in range(TILE):
+                    grow[v] += _dot16(fv, x, o, v)
         nv = norms[v0:v0 + TILE]
         wv = valid[v0:v0 + TILE]
         col_den = np.zeros(TILE, np.float32)
@@ -242,27 +245,61 @@ def _grad_tiles(ft, starts, ends, inv_den, inv_num, ti, tj, dkt, gpart):
 
 
 @njit(cache=True)
+def _instance_order(labels):
+    """The order of a stable argsort of ``labels``: a counting sort when the labels span a small range
+    (instance ids of one view), a merge sort otherwise."""
+    p = labels.size
+    if p == 0:
+        return np.empty(0, np.int64)
+    lo = labels.min()
+    span = labels.max() - lo + 1
+    if span > 4 * p + 1024:
+        return np.argsort(labels, kind="mergesort")
+    first = np.zeros(span + 1, np.int64)
+    for u in range(p):
+        first[labels[u] - lo + 1] += 1
+    for b in range(span):
+        first[b + 1] += first[b]
+    order = np.empty(p, np.int64)
+    for u in range(p):
+        b = labels[u] - lo
+        order[first[b]] = u
+        first[b] += 1
+    return order
+
+
+BLOCK = 16  # pixels per block when moving between pixel-major and feature-major layouts
+
+
+@njit(cache=True)
 def _prepare(features, labels, pp, dp):
     """Sort the P pixels by instance (stable) and lay them out for the tile kernels: f^T padded to
     [dp, pp] with zeros, squared norms, the bounds [start, end) of each sorted pixel's instance
     (padding pixels: an instance of their own each) and validity (1 for the P pixels, 0 for padding)."""
     p, dim = features.shape
-    order = np.argsort(labels, kind="mergesort")
+    order = _instance_order(labels)
     ft = np.zeros((dp, pp), np.float32)
     norms = np.zeros(pp, np.float32)
     starts = np.empty(pp, np.int64)
     ends = np.empty(pp, np.int64)
     valid = np.zeros(pp, np.float32)
-    for u in range(p):
-        src = order[u]
-        starts[u] = starts[u - 1] if u > 0 and labels[src] == labels[order[u - 1]] else u
-        valid[u] = 1.0
-        acc = np.float32(0.0)
+    rows = np.empty((BLOCK, dim), np.float32)
+    for u0 in range(0, p, BLOCK):  # gather BLOCK sorted rows, then write them as columns of f^T
+        nb = min(BLOCK, p - u0)
+        for k in range(nb):
+            u = u0 + k
+            src = order[u]
+            starts[u] = starts[u - 1] if u > 0 and labels[src] == labels[order[u - 1]] else u
+            valid[u] = 1.0
+            acc = np.float32(0.0)
+            for d in range(dim):
+                x = np.float32(features[src, d])
+                rows[k, d] = x
+                acc += x * x
+            norms[u] = acc
         for d in range(dim):
-            x = np.float32(features[src, d])
-            ft[d, u] = x
-            acc += x * x
-        norms[u] = acc
+            for k in range(nb):
+                ft[d, u0 + k] = rows[k, d]
     for u in range(p - 1, -1, -1):
         ends[u] = ends[u + 1] if u + 1 < p and starts[u + 1] == starts[u] else u + 1
     for u in range(p, pp):
@@ -275,43 +312,50 @@ def _prepare(features, labels, pp, dp):
 def _sums(pden, pnum, p):
     """Per anchor den and num (the tiles' partial sums, in float64, in tile order) and the loss."""
     nb, pp = pden.shape
+    den = np.zeros(p, np.float64)
+    num = np.zeros(p, np.float64)
+    for b in range(nb):
+        for u in range(p):
+            den[u] += pden[b, u]
+            num[u] += pnum[b, u]
     inv_den = np.zeros(pp, np.float32)
     inv_num = np.zeros(pp, np.float32)
     loss = 0.0
     for u in range(p):
-        den = 0.0
-        num = 0.0
-        for b in range(nb):
-            den += pden[b, u]
-            num += pnum[b, u]
-        loss += np.log(den / num)
-        inv_den[u] = 1.0 / den
-        inv_num[u] = 1.0 / num
+        loss += np.log(den[u] / num[u])
+        inv_den[u] = 1.0 / den[u]
+        inv_num[u] = 1.0 / num[u]
     return loss / p, inv_den, inv_num
 
 
-@njit(cache=True, fastmath=PAIR_MATH)
+@njit(parallel=True, cache=True, fastmath=PAIR_MATH)
 def _grad_sum(ft, gpart, order, dim_out):
-    """dL/df_u = 2/P (total_u f_u - sum_v c_uv f_v), the per-tile parts added in tile order, written
-    back in the pixels' original order."""
+    """dL/df_u = 2/P (total_u f_u - sum_v c_uv f_v), the per-tile parts added in tile order (rows of
+    the sums in parallel, each element's order fixed), written back in the pixels' original order."""
     nb = gpart.shape[0]
     dim = ft.shape[0]
     pp = gpart.shape[2]
     p = order.size
     acc = np.zeros((dim + 1, pp), np.float32)
-    for b in range(nb):
-        for d in range(dim + 1):
+    for d in prange(dim + 1):
+        row = acc[d]
+        for b in range(nb):
             part = gpart[b, d]
-            row = acc[d]
             for u in range(pp):
                 row[u] += part[u]
     scale = np.float32(2.0 / p)
-    grad = np.empty((p, dim_out), np.float32)
     total = acc[dim]
-    for u in range(p):
-        dst = order[u]
-        for d in range(dim_out):
-            grad[dst, d] = scale * (total[u] * ft[d, u] - acc[d, u])
+    for d in prange(dim_out):
+        row = acc[d]
+        frow = ft[d]
+        for u in range(p):
+            row[u] = scale * (total[u] * frow[u] - row[u])
+    grad = np.empty((p, dim_out), np.float32)
+    for u0 in range(0, p, BLOCK):  # BLOCK columns at a time into their rows (original order)
+        for k in range(min(BLOCK, p - u0)):
+            dst = order[u0 + k]
+            for d in range(dim_out):
+                grad[dst, d] = acc[d, u0 + k]
     return grad
 
 
