@@ -207,7 +207,8 @@ def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, ne
     offsets: with one base pointer and no negative-index wrap-around the compiler can prove that
     lanes never alias.  List positions are stored tile-relative (exact in float32 below 2^24; the
     binning refuses longer tile lists).  The first 8 channels are accumulated inside pass 2 at fixed
-    plane offsets (vectorised); further channels take a scalar loop over the blended lanes.
+    plane offsets (vectorised); further channels follow, one 16-lane loop per channel (lanes that did
+    not blend add w = 0).
 
     Args:
         egeom: [E, 16] float32 geometry per tile-list entry (``geom`` gathered by ``lists``);
@@ -331,15 +332,15 @@ def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, ne
                     buf[F_MAT + p] = rel if med else mat_p
                     finished += np.int64(stop)
                 n_done += finished
-                # channels beyond the first 8 (planes after the 8 fixed ones): scalar, blended
-                # lanes only
+                # channels beyond the first 8 (planes after the 8 fixed ones): all 16 lanes per
+                # channel, vectorised (a lane that did not blend has w = 0 and adds nothing)
                 if k_ch > 8:
-                    for i in range(lx0, lx1):
-                        p = row + np.uint64(i)
-                        w = buf[F_RW + p]
-                        if w != zero:
-                            for ch in range(8, k_ch):
-                                buf[F_ACC + np.uint64(ch * TILE_PIXELS) + p] += w * vals[g, ch]
+                    wrow = F_RW + row
+                    for ch in range(8, k_ch):
+                        v_ch = vals[g, ch]
+                        plane = F_ACC + np.uint64(ch * TILE_PIXELS) + row
+                        for i in range(TILE):
+                            buf[plane + np.uint64(i)] += buf[wrow + np.uint64(i)] * v_ch
             if n_done == n_pix:
                 break
         pairs[t] = visited
