@@ -56,6 +56,21 @@ TILE = 64  # pixels per side of a pair tile (the sample is padded to a multiple 
 LANES = 16  # the feature dimension is padded to a multiple of this (zeros change no distance)
 
 
+@njit(inline="always")
+def _tile_at(ti, tj, t):
+    """Tile ``t`` of the upper tiles: its block indices (I, J) and first pixels (u0, v0)."""
+    i = ti[t]
+    j = tj[t]
+    return i, j, i * TILE, j * TILE
+
+
+@njit(inline="always")
+def _anchor_span(starts, ends, uu, v0):
+    """The anchor ``uu``'s own instance within the tile columns starting at ``v0``: [lo, hi) clipped
+    to the tile (pixels are sorted by instance, so it is one contiguous span)."""
+    return min(max(starts[uu] - v0, 0), TILE), min(max(ends[uu] - v0, 0), TILE)
+
+
 @njit(inline="always", fastmath=PAIR_MATH)
 def _dot16(f, x, o, v):
     """sum_k x[o + k] f[o + k, v] over k < 16 written out, so that a loop over v around it vectorises
@@ -111,10 +126,7 @@ def _pair_tiles(ft, norms, starts, ends, valid, a_pos, a_neg, kind, ti, tj, dkt,
     a_pos = np.float32(a_pos)
     a_neg = np.float32(a_neg)
     for t in prange(ti.size):
-        i = ti[t]
-        j = tj[t]
-        u0 = i * TILE
-        v0 = j * TILE
+        i, j, u0, v0 = _tile_at(ti, tj, t)
         dk = dkt[t]
         # the tile's Gram block, one row at a time: 16 feature lanes per pass written out (_dot16)
         gram = np.empty((TILE, TILE), np.float32)
@@ -137,9 +149,7 @@ def _pair_tiles(ft, norms, starts, ends, valid, a_pos, a_neg, kind, ti, tj, dkt,
             nu = norms[u0 + u]
             wu = valid[u0 + u]
             drow = dk[u]
-            # the anchor's instance within this tile: [lo, hi) (pixels are sorted by instance)
-            lo = min(max(starts[u0 + u] - v0, 0), TILE)
-            hi = min(max(ends[u0 + u] - v0, 0), TILE)
+            lo, hi = _anchor_span(starts, ends, u0 + u, v0)
             s_num = _kernel_span(grow, nu, nv, wu, wv, a_pos, kind, lo, hi, drow, col_den, col_num, True)
             s_den = _kernel_span(grow, nu, nv, wu, wv, a_neg, kind, 0, lo, drow, col_den, col_num, False)
             s_den += _kernel_span(grow, nu, nv, wu, wv, a_neg, kind, hi, TILE, drow, col_den, col_num, False)
@@ -161,10 +171,7 @@ def _grad_tiles(ft, starts, ends, inv_den, inv_num, ti, tj, dkt, gpart):
     rows of J (I < J) get sum_u c_uv [f_u, 1] into ``gpart[I, :, rows]`` (one writer per slot)."""
     dim = ft.shape[0]
     for t in prange(ti.size):
-        i = ti[t]
-        j = tj[t]
-        u0 = i * TILE
-        v0 = j * TILE
+        i, j, u0, v0 = _tile_at(ti, tj, t)
         dk = dkt[t]
         idv = inv_den[v0:v0 + TILE]
         inv = inv_num[v0:v0 + TILE]
@@ -174,8 +181,7 @@ def _grad_tiles(ft, starts, ends, inv_den, inv_num, ti, tj, dkt, gpart):
             nu = inv_num[u0 + u]
             drow = dk[u]
             crow = coef[u]
-            lo = min(max(starts[u0 + u] - v0, 0), TILE)
-            hi = min(max(ends[u0 + u] - v0, 0), TILE)
+            lo, hi = _anchor_span(starts, ends, u0 + u, v0)
             for v in range(lo):
                 crow[v] = drow[v] * (du + idv[v])
             for v in range(lo, hi):

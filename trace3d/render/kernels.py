@@ -105,19 +105,26 @@ def stable_argsort_f32(keys):
         else:
             b = b | np.uint32(0x80000000)
         ukeys[i] = b
-    order = np.arange(n)
-    tmp = np.empty(n, np.int64)
     size = 1 << RADIX_BITS
     mask = np.uint32(size - 1)
-    for shift in range(0, 32, RADIX_BITS):
-        counts = np.zeros(size + 1, np.int64)
-        for i in range(n):
-            counts[((ukeys[order[i]] >> np.uint32(shift)) & mask) + 1] += 1
+    passes = -(-32 // RADIX_BITS)
+    # each pass's digit histogram does not depend on the order: all of them in one sweep, then the
+    # start of each digit's run
+    starts = np.zeros((passes, size + 1), np.int64)
+    for i in range(n):
+        for k in range(passes):
+            starts[k, ((ukeys[i] >> np.uint32(k * RADIX_BITS)) & mask) + 1] += 1
+    for k in range(passes):
         for d in range(size):
-            counts[d + 1] += counts[d]
+            starts[k, d + 1] += starts[k, d]
+    order = np.arange(n)
+    tmp = np.empty(n, np.int64)
+    for k in range(passes):
+        shift = np.uint32(k * RADIX_BITS)
+        counts = starts[k]
         for i in range(n):
             g = order[i]
-            d = (ukeys[g] >> np.uint32(shift)) & mask
+            d = (ukeys[g] >> shift) & mask
             tmp[counts[d]] = g
             counts[d] += 1
         order, tmp = tmp, order
