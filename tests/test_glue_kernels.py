@@ -208,3 +208,91 @@ def test_render_uses_fused_path_and_matches_twin():
     torch.testing.assert_close(results[0][0], results[1][0], rtol=1e-4, atol=1e-5)
     for a, b in zip(results[0][1], results[1][1]):
         torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4 * max(1.0, float(b.abs().max())))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_sh_colors_of_rows_equal_the_full_colours_rows(dtype):
+    """Colours of selected rows only: the same numbers as those rows of the full evaluation, and the
+    same gradients (bit for bit) as the full evaluation with zero upstream outside the rows."""
+    means, dc, rest, center = _sh_inputs(2000, 15, dtype, seed=4)
+    rows = torch.as_tensor(np.sort(np.random.default_rng(0).choice(2000, 600, replace=False)))
+    full = gk.sh_colors(means, dc, rest, center, 3)
+    part = gk.sh_colors(means, dc, rest, center, 3, rows)
+    assert part.shape == (600, 3) and torch.equal(part, full[rows])
+    up = torch.randn(600, 3, generator=torch.Generator().manual_seed(2), dtype=dtype)
+    up_full = torch.zeros(2000, 3, dtype=dtype)
+    up_full[rows] = up
+    g_part = torch.autograd.grad((part * up).sum(), (means, dc, rest))
+    g_full = torch.autograd.grad((full * up_full).sum(), (means, dc, rest))
+    for name, a, b in zip(("means", "dc", "rest"), g_part, g_full):
+        assert torch.equal(a, b), name
+    others = torch.ones(2000, dtype=torch.bool)
+    others[rows] = False
+    assert bool((g_part[2][others] == 0).all()) and bool((g_part[2][rows] != 0).any())
+    # the torch twin takes rows too
+    twin = gk.sh_colors_torch(means[rows], dc[rows], rest[rows], center, 3)
+    torch.testing.assert_close(part, twin, rtol=1e-5, atol=1e-5)
+
+
+def _visible_and_hidden_model(n=500, seed=0):
+    """A model of which part faces ``_camera(3)`` and part sits behind it."""
+    from trace3d.gaussians import GaussianModel
+
+    g = torch.Generator().manual_seed(seed)
+    cam = _camera(3)
+    c2w = np.linalg.inv(cam.world_to_camera)
+    depth = np.where(np.arange(n) % 3 == 0, -2.0, 3.0)  # a third behind the camera
+    means = torch.as_tensor(c2w[:3, :3] @ np.stack([np.zeros(n), np.zeros(n), depth]) + c2w[:3, 3:4]).T
+    means = means.float() + torch.randn(n, 3, generator=g) * 0.8
+    model = GaussianModel(means=means, quats=torch.randn(n, 4, generator=g),
+                          log_scales=torch.randn(n, 2, generator=g) * 0.3 - 3.0,
+                          opacity_logits=torch.randn(n, generator=g),
+                          sh_dc=torch.randn(n, 1, 3, generator=g), sh_rest=torch.randn(n, 15, 3, generator=g) * 0.3)
+    return model, cam
+
+
+@pytest.mark.parametrize("backend", ["numba", "reference"])
+def test_render_with_features_of_rows_is_the_same_render(backend):
+    """render() with a features function (what the training loop passes: colours of the visible
+    splats only) gives the same images and gradients as with the [N, C] tensor; the numba back end
+    asks only for the visible rows."""
+    from trace3d.gaussians import GaussianModel
+    from trace3d.render import render
+
+    model, cam = _visible_and_hidden_model()
+    center = torch.as_tensor(cam.center, dtype=torch.float32)
+    results, asked = [], []
+    for by_rows in (False, True):
+        params = [t.detach().clone().requires_grad_() for t in (model.means, model.quats, model.log_scales,
+                                                                  model.opacity_logits, model.sh_dc, model.sh_rest)]
+        m = GaussianModel(means=params[0], quats=params[1], log_scales=params[2], opacity_logits=params[3],
+                          sh_dc=params[4], sh_rest=params[5])
+
+        def features(rows, m=m):
+            asked.append(None if rows is None else rows.clone())
+            return m.colors(center, 3, rows)
+
+        out = render(m.splats(), cam, features if by_rows else m.colors(center, 3), backend=backend)
+        loss = out.features.square().sum() + out.normal.sum() + out.depth.sum() + out.median_depth.sum()
+        grads = torch.autograd.grad(loss, params + [out.means2d] if backend == "numba" else params)
+        results.append(([out.features, out.alpha, out.depth, out.normal, out.median_depth, out.radii, out.visible],
+                        grads))
+    visible = results[0][0][6]
+    assert 0 < int(visible.sum()) < len(model)
+    if backend == "numba":
+        assert torch.equal(asked[0], torch.nonzero(visible).squeeze(1))
+    else:
+        assert asked[0] is None
+    for a, b in zip(results[0][0], results[1][0]):
+        assert torch.equal(a, b)
+    for a, b in zip(results[0][1], results[1][1]):
+        assert torch.equal(a, b)
+
+
+def test_render_rejects_features_function_of_wrong_shape():
+    from trace3d.errors import Trace3DError
+    from trace3d.render import render
+
+    model, cam = _visible_and_hidden_model(n=60)
+    with pytest.raises(Trace3DError, match=r"features\(rows\)"):
+        render(model.splats(), cam, lambda rows: torch.zeros(len(model) + 1, 3))

@@ -626,3 +626,26 @@ def test_bench_fit_compare_and_baseline_checks(tmp_path):
     assert set(cmp) == {"160x120"} and cmp["160x120"]["speedup"] == pytest.approx(4.0)
     with pytest.raises(FileNotFoundError, match="not a trace3d checkout"):
         bench.run_baseline(tmp_path, None, None, quick=True)
+
+
+def test_density_statistics_kernel_matches_torch_lines():
+    """add_stats' fused pass gives bit for bit the statistics of its masked torch updates."""
+    from trace3d.training import strategy as st
+
+    g = torch.Generator().manual_seed(0)
+    n = 5000
+    accum = torch.rand(n, generator=g)
+    count = torch.randint(0, 5, (n,), generator=g).float()
+    radii_max = torch.randint(0, 9, (n,), generator=g).float()
+    norms = torch.rand(n, generator=g) * 1e-3
+    visible = torch.rand(n, generator=g) < 0.3
+    radii = torch.randint(0, 12, (n,), generator=g, dtype=torch.int32)
+    assert st._stats_kernel_applies(accum, count, radii_max, norms, visible, radii)
+    a, c, r = accum.clone(), count.clone(), radii_max.clone()
+    st._accumulate_stats(a.numpy(), c.numpy(), r.numpy(), norms.numpy(), visible.numpy(), radii.numpy())
+    accum[visible] += norms[visible]
+    count[visible] += 1
+    radii_max[visible] = torch.maximum(radii_max[visible], radii[visible].to(radii_max.dtype))
+    assert torch.equal(a, accum) and torch.equal(c, count) and torch.equal(r, radii_max)
+    assert not torch.equal(r, torch.maximum(radii_max, radii.float()))  # hidden rows kept their maxima
+    assert not st._stats_kernel_applies(accum, count, radii_max, norms.double(), visible, radii)

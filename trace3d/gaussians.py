@@ -326,23 +326,27 @@ class GaussianModel:
             opacities=self.opacities,
         )
 
-    def colors(self, camera_center: torch.Tensor | np.ndarray, degree: int | None = None) -> torch.Tensor:
+    def colors(self, camera_center: torch.Tensor | np.ndarray, degree: int | None = None,
+               rows: torch.Tensor | None = None) -> torch.Tensor:
         """View-dependent RGB of every Gaussian seen from ``camera_center``.
 
         Args:
             camera_center: [3] world position of the camera.
             degree: SH degree to evaluate (default: the model's maximum).
+            rows: optional [R] distinct int64 indices: only those Gaussians (gradients zero for the
+                others).
         Returns:
-            [N, 3] colours, ``SH + 0.5`` clamped at 0 (the 3DGS convention).
+            [N, 3] colours (or [R, 3] for ``rows``), ``SH + 0.5`` clamped at 0 (the 3DGS convention).
         """
         degree = self.sh_degree if degree is None else min(int(degree), self.sh_degree)
         if degree == 0:
-            return (SH_C0 * self.sh_dc[:, 0] + 0.5).clamp_min(0.0)
+            dc = self.sh_dc[:, 0] if rows is None else self.sh_dc[rows, 0]
+            return (SH_C0 * dc + 0.5).clamp_min(0.0)
         from .render.glue_kernels import sh_colors
 
         center = torch.as_tensor(np.asarray(camera_center) if not torch.is_tensor(camera_center) else camera_center)
         center = center.to(dtype=self.means.dtype, device=self.means.device)
-        return sh_colors(self.means, self.sh_dc, self.sh_rest, center, degree)
+        return sh_colors(self.means, self.sh_dc, self.sh_rest, center, degree, rows)
 
     # --- PLY -----------------------------------------------------------------------------------
     def ply_attribute_names(self) -> list[str]:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from typing import Optional
+from typing import Callable, Optional
 
 import torch
 from torch import Tensor
@@ -77,16 +77,23 @@ def _check_features(features: Tensor, n: int, what: str) -> None:
         raise Trace3DError(f"render: {what} needs at least one channel.")
 
 
-def render(splats: Splats, camera: Camera, features: Tensor, background: Optional[Tensor] = None,
-           near: float = 0.01, with_distortion: bool = False, backend: Optional[str] = None) -> RenderOutput:
+def render(splats: Splats, camera: Camera, features: Tensor | Callable[[Optional[Tensor]], Tensor],
+           background: Optional[Tensor] = None, near: float = 0.01, with_distortion: bool = False,
+           backend: Optional[str] = None) -> RenderOutput:
     """Render splats into ``camera``.
 
     Differentiable with respect to means, quats, scales, opacities, features and background.
 
+    The numba back end rasterizes only the splats the view sees (``visible``): the kernels' inputs,
+    outputs and the gradients' per-worker buffers are sized by them, not by N.
+
     Args:
         splats: N splats (activated scales and opacities).
         camera: the camera (its width, height, K, world_to_camera).
-        features: [N, C] per-splat features (RGB colour, or C up to a few hundred).
+        features: [N, C] per-splat features (RGB colour, or C up to a few hundred); or a function
+            ``rows -> [R, C]`` that computes the features of the splats ``rows`` ([R] int64,
+            ascending; ``None`` for all N), so that a view pays only for the splats it sees (the
+            training loop's SH colours).
         background: [C] added with the final transmittance, or None for zeros.
         near: near plane (camera z) for culling centres and ray-plane intersections.
         with_distortion: also compute ``distortion``.
@@ -95,22 +102,34 @@ def render(splats: Splats, camera: Camera, features: Tensor, background: Optiona
         a :class:`RenderOutput`.
     """
     n = check_splats(splats)
-    _check_features(features, n, "features")
+    name = _backend(backend)
+    if not callable(features):
+        _check_features(features, n, "features")
+    proj = project(splats, camera, near)
+    if proj.means2d.requires_grad:
+        proj.means2d.retain_grad()
+    rows = None
+    if name == "numba":
+        rows = torch.nonzero(proj.visible).squeeze(1)
+        if rows.numel() == n:
+            rows = None  # everything visible: no selection needed
+    if callable(features):
+        features = features(rows)
+        _check_features(features, n if rows is None else rows.numel(), "features(rows)")
+    elif rows is not None:
+        features = features.index_select(0, rows)
     c = features.shape[1]
     if background is None:
         background = torch.zeros(c, device=features.device, dtype=features.dtype)
     if background.shape != (c,):
         raise Trace3DError(f"render: background must have shape [{c}], got {tuple(background.shape)}.")
-    proj = project(splats, camera, near)
-    if proj.means2d.requires_grad:
-        proj.means2d.retain_grad()
-    name = _backend(backend)
     if name == "reference":
         out = render_reference(proj, features, camera.width, camera.height, background, near)
     else:
         from .kernels import rasterize
 
-        out = rasterize(proj, features, camera.width, camera.height, background, near)
+        out = rasterize(proj if rows is None else proj.select(rows), features, camera.width, camera.height,
+                        background, near)
     distortion = None
     if with_distortion:
         # sum_{i,j} w_i w_j (z_i - z_j)^2 = 2 (W S2 - S1^2) with depths taken relative to depth_ref

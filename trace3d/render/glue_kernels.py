@@ -476,36 +476,39 @@ def _direction(means, g, cx, cy, cz):
 
 
 @njit(parallel=True, cache=True)
-def _sh_forward(means, sh_dc, sh_rest, center, degree, colors):
-    n = means.shape[0]
+def _sh_forward(means, sh_dc, sh_rest, center, degree, rows, colors):
+    """colors[j] = the SH colour of Gaussian rows[j]."""
+    n = rows.shape[0]
     count = (degree + 1) * (degree + 1)
     cx, cy, cz = center[0], center[1], center[2]
     for chunk in prange((n + _SH_CHUNK - 1) // _SH_CHUNK):
         b = np.zeros(16)
         db = np.zeros((16, 3))
-        for g in range(chunk * _SH_CHUNK, min(n, (chunk + 1) * _SH_CHUNK)):
+        for j in range(chunk * _SH_CHUNK, min(n, (chunk + 1) * _SH_CHUNK)):
+            g = rows[j]
             x, y, z, inv = _direction(means, g, cx, cy, cz)
             _sh_basis(x, y, z, degree, b, db, False)
             for c in range(3):
                 v = _C0 * float(sh_dc[g, 0, c])
                 for i in range(1, count):
                     v += b[i] * float(sh_rest[g, i - 1, c])
-                colors[g, c] = max(v + 0.5, 0.0)
+                colors[j, c] = max(v + 0.5, 0.0)
 
 
 @njit(parallel=True, cache=True)
-def _sh_backward(means, sh_dc, sh_rest, center, degree, g_colors, g_means, g_dc, g_rest):
-    n = means.shape[0]
+def _sh_backward(means, sh_dc, sh_rest, center, degree, rows, g_colors, g_means, g_dc, g_rest):
+    """Gradients of the rows' colours (g_colors[j] belongs to Gaussian rows[j]; rows are distinct)
+    into g_means, g_dc and g_rest, which come in zeroed."""
+    n = rows.shape[0]
     count = (degree + 1) * (degree + 1)
     cx, cy, cz = center[0], center[1], center[2]
     for chunk in prange((n + _SH_CHUNK - 1) // _SH_CHUNK):
         b = np.zeros(16)
         db = np.zeros((16, 3))
-        for g in range(chunk * _SH_CHUNK, min(n, (chunk + 1) * _SH_CHUNK)):
-            if g_colors[g, 0] == 0 and g_colors[g, 1] == 0 and g_colors[g, 2] == 0:
-                # not rendered in this view: zero gradients (g_means and g_rest start zeroed)
-                g_dc[g, 0, 0] = g_dc[g, 0, 1] = g_dc[g, 0, 2] = 0.0
-                continue
+        for j in range(chunk * _SH_CHUNK, min(n, (chunk + 1) * _SH_CHUNK)):
+            if g_colors[j, 0] == 0 and g_colors[j, 1] == 0 and g_colors[j, 2] == 0:
+                continue  # not rendered in this view: zero gradients
+            g = rows[j]
             x, y, z, inv = _direction(means, g, cx, cy, cz)
             _sh_basis(x, y, z, degree, b, db, True)
             gdx = 0.0
@@ -515,7 +518,7 @@ def _sh_backward(means, sh_dc, sh_rest, center, degree, g_colors, g_means, g_dc,
                 v = _C0 * float(sh_dc[g, 0, c])
                 for i in range(1, count):
                     v += b[i] * float(sh_rest[g, i - 1, c])
-                gv = float(g_colors[g, c]) if v + 0.5 >= 0.0 else 0.0  # clamp_min passes ties
+                gv = float(g_colors[j, c]) if v + 0.5 >= 0.0 else 0.0  # clamp_min passes ties
                 g_dc[g, 0, c] = _C0 * gv
                 for i in range(1, count):
                     r = float(sh_rest[g, i - 1, c])
@@ -532,35 +535,38 @@ def _sh_backward(means, sh_dc, sh_rest, center, degree, g_colors, g_means, g_dc,
 
 class _ShColors(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, sh_dc, sh_rest, center, degree):
-        n = means.shape[0]
-        colors = np.empty((n, 3), np.float64 if means.dtype == torch.float64 else np.float32)
+    def forward(ctx, means, sh_dc, sh_rest, center, degree, rows):
+        colors = np.empty((rows.shape[0], 3), np.float64 if means.dtype == torch.float64 else np.float32)
         inputs = (_np(means), _np(sh_dc), _np(sh_rest), center)
-        if n:
-            _sh_forward(*inputs, degree, colors)
+        if rows.shape[0]:
+            _sh_forward(*inputs, degree, rows, colors)
         ctx.inputs = inputs
         ctx.degree = degree
+        ctx.rows = rows
         return torch.from_numpy(colors)
 
     @staticmethod
     def backward(ctx, g_colors):
         means, sh_dc, sh_rest, center = ctx.inputs
         g_means = np.zeros(means.shape, means.dtype)
-        g_dc = np.empty(sh_dc.shape, sh_dc.dtype)
+        g_dc = np.zeros(sh_dc.shape, sh_dc.dtype)
         g_rest = np.zeros(sh_rest.shape, sh_rest.dtype)
-        if means.shape[0]:
-            _sh_backward(means, sh_dc, sh_rest, center, ctx.degree,
+        if ctx.rows.shape[0]:
+            _sh_backward(means, sh_dc, sh_rest, center, ctx.degree, ctx.rows,
                          np.ascontiguousarray(g_colors.detach().numpy().astype(means.dtype, copy=False)),
                          g_means, g_dc, g_rest)
-        return torch.from_numpy(g_means), torch.from_numpy(g_dc), torch.from_numpy(g_rest), None, None
+        return torch.from_numpy(g_means), torch.from_numpy(g_dc), torch.from_numpy(g_rest), None, None, None
 
 
-def sh_colors(means: Tensor, sh_dc: Tensor, sh_rest: Tensor, center: Tensor, degree: int) -> Tensor:
-    """``max(SH_degree(d) + 0.5, 0)`` per Gaussian: [N, 3].
+def sh_colors(means: Tensor, sh_dc: Tensor, sh_rest: Tensor, center: Tensor, degree: int,
+              rows: Tensor | None = None) -> Tensor:
+    """``max(SH_degree(d) + 0.5, 0)`` per Gaussian: [N, 3], or [R, 3] for the Gaussians ``rows``.
 
     Args:
         means: [N, 3]; sh_dc: [N, 1, 3]; sh_rest: [N, K, 3] with K >= (degree + 1)^2 - 1 (extra
-            coefficients ignored, their gradient zero); center: [3] camera centre; degree: 1..3.
+            coefficients ignored, their gradient zero); center: [3] camera centre; degree: 1..3;
+            rows: optional [R] distinct int64 indices: only those Gaussians' colours (a render needs
+            only the Gaussians its view sees), gradients zero for the others.
     Differentiable w.r.t. means, sh_dc and sh_rest (numba on the CPU, else the torch twin
     :func:`sh_colors_torch`).
     """
@@ -568,9 +574,13 @@ def sh_colors(means: Tensor, sh_dc: Tensor, sh_rest: Tensor, center: Tensor, deg
         raise ValueError(f"sh_colors: degree {degree} needs {(degree + 1) ** 2 - 1} rest coefficients, "
                          f"got {sh_rest.shape[1]}")
     if not use_fused(means, sh_dc, sh_rest) or not (means.dtype == sh_dc.dtype == sh_rest.dtype):
+        if rows is not None:
+            means, sh_dc, sh_rest = means[rows], sh_dc[rows], sh_rest[rows]
         return sh_colors_torch(means, sh_dc, sh_rest, center, degree)
     c = np.ascontiguousarray(torch.as_tensor(center).detach().cpu().double().numpy().reshape(3))
-    return _ShColors.apply(means, sh_dc, sh_rest, c, int(degree))
+    index = (np.arange(means.shape[0], dtype=np.int64) if rows is None
+             else np.ascontiguousarray(rows.detach().cpu().numpy().astype(np.int64, copy=False)))
+    return _ShColors.apply(means, sh_dc, sh_rest, c, int(degree), index)
 
 
 def sh_colors_torch(means: Tensor, sh_dc: Tensor, sh_rest: Tensor, center: Tensor, degree: int) -> Tensor:

@@ -87,6 +87,14 @@ class Projected:
     boxes: np.ndarray
     visible: Tensor
 
+    def select(self, rows: Tensor) -> "Projected":
+        """The splats ``rows`` ([R] int64, ascending) only, differentiably (the gradients of the
+        others are zero)."""
+        return Projected(self.ray_transforms.index_select(0, rows), self.coeffs.index_select(0, rows),
+                         self.means2d.index_select(0, rows), self.normals.index_select(0, rows),
+                         self.depths.index_select(0, rows), self.opacities.index_select(0, rows),
+                         self.boxes[rows.cpu().numpy()], self.visible.index_select(0, rows))
+
 
 def camera_tensors(camera: Camera, device: torch.device, dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor]:
     """The camera as tensors: K [3, 3], world-to-camera rotation [3, 3], translation [3]."""

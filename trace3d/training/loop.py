@@ -133,8 +133,10 @@ def render_view(model: GaussianModel, camera: Camera, sh_degree: int, background
     """Render ``model`` (colours from SH up to ``sh_degree``) into ``camera``; the renderer's RenderOutput."""
     from ..render import render
 
-    colors = model.colors(torch.as_tensor(camera.center, dtype=model.means.dtype, device=model.device), sh_degree)
-    return render(model.splats(), camera, colors, background, near=near, with_distortion=with_distortion)
+    center = torch.as_tensor(camera.center, dtype=model.means.dtype, device=model.device)
+    # colours of the splats the view sees only (the renderer passes their rows)
+    return render(model.splats(), camera, lambda rows: model.colors(center, sh_degree, rows), background,
+                  near=near, with_distortion=with_distortion)
 
 
 def fit(

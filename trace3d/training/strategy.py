@@ -19,7 +19,9 @@ from __future__ import annotations
 import logging
 from typing import Sequence
 
+import numpy as np
 import torch
+from numba import njit, prange
 
 from ..gaussians import GaussianModel, quat_to_rotmat
 from ..scene import Camera
@@ -130,10 +132,36 @@ def add_stats(state: GaussianOptimizer, means2d_grad: torch.Tensor, visible: tor
     stats = state.statistics
     scale = torch.tensor([width / 2.0, height / 2.0], device=means2d_grad.device, dtype=means2d_grad.dtype)
     norms = (means2d_grad * scale).norm(dim=-1)
-    stats["grad_accum"][visible] += norms[visible]
-    stats["grad_count"][visible] += 1
-    radii_max = stats["max_radii"]
+    accum, count, radii_max = stats["grad_accum"], stats["grad_count"], stats["max_radii"]
+    if _stats_kernel_applies(accum, count, radii_max, norms, visible, radii):
+        # one parallel pass instead of three masked gathers and scatters (the same additions and
+        # maxima element by element, so the statistics are bit-identical to the torch lines below)
+        _accumulate_stats(accum.numpy(), count.numpy(), radii_max.numpy(), norms.numpy(), visible.numpy(),
+                          radii.numpy())
+        return
+    accum[visible] += norms[visible]
+    count[visible] += 1
     radii_max[visible] = torch.maximum(radii_max[visible], radii[visible].to(radii_max.dtype))
+
+
+def _stats_kernel_applies(accum, count, radii_max, norms, visible, radii) -> bool:
+    tensors = (accum, count, radii_max, norms, visible, radii)
+    return (all(t.device.type == "cpu" and t.is_contiguous() and not t.requires_grad for t in tensors)
+            and accum.dtype == count.dtype == radii_max.dtype == norms.dtype == torch.float32
+            and visible.dtype == torch.bool and radii.dtype == torch.int32
+            and len({t.shape[0] for t in tensors}) == 1 and all(t.dim() == 1 for t in tensors))
+
+
+@njit(parallel=True, cache=True)
+def _accumulate_stats(accum, count, radii_max, norms, visible, radii):
+    """``add_stats``' three masked updates in one pass (twin: its torch lines, tested equal)."""
+    for i in prange(accum.shape[0]):
+        if visible[i]:
+            accum[i] += norms[i]
+            count[i] += np.float32(1.0)
+            r = np.float32(radii[i])
+            if r > radii_max[i]:
+                radii_max[i] = r
 
 
 @torch.no_grad()
