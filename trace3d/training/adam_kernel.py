@@ -78,3 +78,50 @@ class CpuAdam:
         inv_bc2_sqrt = 1.0 / math.sqrt(1.0 - self.b2 ** self.steps)
         _adam_clear(self.param.detach().numpy(), grad, self.exp_avg, self.exp_avg_sq, step_size, 1.0 - self.b1,
                     self.b2, 1.0 - self.b2, inv_bc2_sqrt, self.eps)
+
+
+@njit(parallel=True, cache=True)
+def _adam_rows(param, grad, m, v, rows, step_size, one_minus_b1, b2, one_minus_b2, inv_bc2_sqrt, eps):
+    """torch's Adam update on the rows ``rows`` of [N, D] float32 arrays only (others untouched)."""
+    one_minus_b1 = np.float32(one_minus_b1)
+    b2 = np.float32(b2)
+    one_minus_b2 = np.float32(one_minus_b2)
+    step_size = np.float32(step_size)
+    inv_bc2_sqrt = np.float32(inv_bc2_sqrt)
+    eps = np.float32(eps)
+    for j in prange(rows.shape[0]):
+        i = rows[j]
+        for c in range(param.shape[1]):
+            gc = grad[i, c]
+            mc = m[i, c] + one_minus_b1 * (gc - m[i, c])
+            vc = b2 * v[i, c] + one_minus_b2 * gc * gc
+            m[i, c] = mc
+            v[i, c] = vc
+            param[i, c] -= step_size * mc / (np.sqrt(vc) * inv_bc2_sqrt + eps)
+
+
+def adam_rows_torch(param: torch.Tensor, grad: torch.Tensor, m: torch.Tensor, v: torch.Tensor, rows: torch.Tensor,
+                    step_size: float, b1: float, b2: float, inv_bc2_sqrt: float, eps: float) -> None:
+    """The twin of :func:`adam_rows` in torch index operations (any device)."""
+    g = grad[rows]
+    mr = m[rows].lerp_(g, 1.0 - b1)
+    vr = v[rows].mul_(b2).addcmul_(g, g, value=1.0 - b2)
+    m[rows] = mr
+    v[rows] = vr
+    param[rows] -= step_size * mr / (vr.sqrt() * inv_bc2_sqrt + eps)
+
+
+def adam_rows(param: torch.Tensor, grad: torch.Tensor, m: torch.Tensor, v: torch.Tensor, rows: torch.Tensor,
+              step_size: float, b1: float, b2: float, inv_bc2_sqrt: float, eps: float) -> None:
+    """Adam on the rows ``rows`` ([R] int64) of a parameter [N, ...] in place (parameter and moments);
+    the other rows are left exactly as they are. ``step_size`` = lr / (1 - b1^t), ``inv_bc2_sqrt`` =
+    1 / sqrt(1 - b2^t). A numba pass on contiguous float32 CPU tensors, else :func:`adam_rows_torch`."""
+    n = param.shape[0]
+    flat = [t.reshape(n, -1) if t.is_contiguous() else None for t in (param, grad, m, v)]
+    if (param.device.type == "cpu" and all(f is not None and f.dtype == torch.float32 for f in flat)
+            and all(f.data_ptr() == t.data_ptr() for f, t in zip(flat, (param, grad, m, v)))):
+        arrays = [f.detach().numpy() for f in flat]
+        _adam_rows(*arrays, np.ascontiguousarray(rows.cpu().numpy(), dtype=np.int64), step_size, 1.0 - b1, b2,
+                   1.0 - b2, inv_bc2_sqrt, eps)
+        return
+    adam_rows_torch(param.detach(), grad, m, v, rows, step_size, b1, b2, inv_bc2_sqrt, eps)

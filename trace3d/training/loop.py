@@ -267,7 +267,7 @@ def _fit_loop(model: GaussianModel, cameras: Sequence[Camera], images: list[torc
             event = strategy.after_backward(iteration, state, out, camera)
             if event:
                 densify_events.append({**event, "iteration": iteration})
-            state.step()
+            state.step(out.visible)
             event = strategy.after_step(iteration, state)
             if event:
                 densify_events.append({**event, "iteration": iteration})

@@ -89,9 +89,41 @@ class GaussianOptimizer:
     def lr(self, name: str) -> float:
         return next(g["lr"] for g in self.optimizer.param_groups if g["name"] == name)
 
-    def step(self) -> None:
-        self.optimizer.step()
+    def step(self, visible: torch.Tensor | None = None) -> None:
+        """One Adam step, then the gradients are cleared.
+
+        Args:
+            visible: [N] bool, the Gaussians the view rendered: with ``params.visible_adam`` only
+                their parameters and moments are updated (see :meth:`visible_step`); ignored
+                otherwise, or when its length is not the model's (density control just edited it).
+        """
+        if self.params.visible_adam and visible is not None and visible.shape[0] == len(self.model):
+            self.visible_step(torch.nonzero(visible).squeeze(1))
+        else:
+            self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
+
+    @torch.no_grad()
+    def visible_step(self, rows: torch.Tensor) -> None:
+        """Adam on the Gaussians ``rows`` only (gsplat's "visible Adam"): the same update as
+        ``torch.optim.Adam`` for those rows, with the step count (and so the bias corrections) of
+        every step; the other rows' parameters and moments stay as they are."""
+        from .adam_kernel import adam_rows
+
+        for group in self.optimizer.param_groups:
+            param = group["params"][0]
+            if param.grad is None:
+                continue
+            state = self.optimizer.state[param]
+            if not state:  # torch's own initial state, so that dense and visible steps can mix
+                state["step"] = torch.tensor(0.0, dtype=torch.float32)
+                state["exp_avg"] = torch.zeros_like(param, memory_format=torch.preserve_format)
+                state["exp_avg_sq"] = torch.zeros_like(param, memory_format=torch.preserve_format)
+            state["step"] += 1
+            t = float(state["step"])
+            b1, b2 = group["betas"]
+            adam_rows(param, param.grad, state["exp_avg"], state["exp_avg_sq"], rows.to(param.device),
+                      group["lr"] / (1.0 - b1 ** t), b1, b2, 1.0 / math.sqrt(1.0 - b2 ** t), group["eps"])
 
     def _group(self, name: str) -> dict | None:
         return next((g for g in self.optimizer.param_groups if g["name"] == name), None)

@@ -90,6 +90,10 @@ class TrainParams:
     num_render_views: int = 4
     flush_denormals: bool = True  # CPU: treat denormal floats as zero during training (much faster Adam/backward)
     fused_adam: bool = True  # torch's fused Adam kernel (same update up to rounding; several times faster)
+    # Adam on the Gaussians the view rendered only (as gsplat's "visible Adam"): the others keep their
+    # parameters and moments unchanged instead of drifting on their momentum; the bias corrections
+    # count every step. Off by default: it changes the fit (docs/performance.md has the comparison).
+    visible_adam: bool = False
     # torch intra-op threads during training (0 = leave torch's setting). The heavy work is in the
     # rasterizer's numba kernels, which run their own threads; torch's OpenMP threads spin-waiting
     # beside them made an iteration 15x slower on a busy 2-core machine (5.0 vs 0.33 s at 80k splats).
