@@ -714,3 +714,49 @@ def test_visible_adam_equals_torch_adam_when_everything_is_visible():
                 # each element's update is its own, so the rendered rows still follow dense Adam
                 torch.testing.assert_close(a[~hidden], b[~hidden], rtol=1e-5, atol=1e-6, msg=name)
             assert vis.model.get(name).grad is None
+
+
+def test_bulk_phases_do_not_depend_on_the_torch_thread_count():
+    """Adam (torch's fused kernel) and the default density control run with the process's torch
+    threads inside the fit: their results must be bit-identical to one thread's."""
+    import hashlib
+
+    from trace3d.gaussians import GaussianModel
+    from trace3d.threads import torch_threads
+    from trace3d.training.optimizer import GaussianOptimizer, learning_rates
+    from trace3d.training.params import TrainParams
+    from trace3d.training.strategy import densify_and_prune, reset_stats
+
+    g = torch.Generator().manual_seed(3)
+    n = 60_000  # large enough for torch to split its loops between threads
+    model = GaussianModel(means=torch.randn(n, 3, generator=g), quats=torch.randn(n, 4, generator=g),
+                          log_scales=torch.randn(n, 2, generator=g) - 4.0, opacity_logits=torch.randn(n, generator=g),
+                          sh_dc=torch.randn(n, 1, 3, generator=g), sh_rest=torch.randn(n, 15, 3, generator=g))
+    params = TrainParams(max_gaussians=n + 5000)
+    stats = torch.rand(n, generator=g) * 2e-3
+
+    def run(threads: int) -> str:
+        state = GaussianOptimizer(model, learning_rates(params, 2.0), params, 2.0)
+        state.bulk_threads = threads
+        noise = torch.Generator().manual_seed(7)
+        for _ in range(3):
+            for group in state.optimizer.param_groups:
+                p = group["params"][0]
+                p.grad = torch.randn(p.shape, generator=noise) * 1e-2
+            state.step()
+        reset_stats(state)
+        state.statistics["grad_accum"] += stats
+        state.statistics["grad_count"] += 1
+        with torch_threads(threads):
+            event = densify_and_prune(state, True, torch.Generator().manual_seed(0))
+        assert event["cloned"] + event["split"] > 0 and event["pruned"] > 0
+        h = hashlib.sha1()
+        for name, t in sorted(state.model.tensors().items()):
+            h.update(name.encode())
+            h.update(t.detach().contiguous().numpy().tobytes())
+        for group in state.optimizer.param_groups:
+            for key in ("exp_avg", "exp_avg_sq"):
+                h.update(state.optimizer.state[group["params"][0]][key].numpy().tobytes())
+        return h.hexdigest()
+
+    assert run(1) == run(2)

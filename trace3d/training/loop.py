@@ -29,7 +29,6 @@ Divergence (a non-finite loss, gradient or parameter) stops training with a
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 import sys
@@ -45,6 +44,7 @@ from ..errors import ConfigError, Trace3DError
 from ..gaussians import GaussianModel
 from ..losses import depth_normal_consistency, photometric_loss, psnr, ssim
 from ..scene import Camera
+from ..threads import torch_threads  # noqa: F401  (re-exported)
 from .optimizer import GaussianOptimizer, learning_rates
 from .params import TrainParams
 from .strategy import DefaultStrategy, Strategy
@@ -187,33 +187,26 @@ def fit(
     np.finfo(np.float32), np.finfo(np.float64)  # compute numpy's float limits before flushing denormals
     flushing = params.flush_denormals and torch.set_flush_denormal(True)
     try:
+        # Adam and the default density control run with the process's torch threads (``--threads``),
+        # the rest of the loop with params.torch_threads (docs/performance.md)
+        bulk_threads = torch.get_num_threads()
         with torch_threads(params.torch_threads):
-            return _fit_loop(model, cameras, images, params, extent, progress, device, callback, strategy, lrs, desc)
+            return _fit_loop(model, cameras, images, params, extent, progress, device, callback, strategy, lrs, desc,
+                             bulk_threads)
     finally:
         if flushing:
             torch.set_flush_denormal(False)
 
 
-@contextlib.contextmanager
-def torch_threads(count: int):
-    """Run the block with ``count`` torch intra-op threads (0: unchanged), restoring the setting after."""
-    previous = torch.get_num_threads()
-    if count > 0:
-        torch.set_num_threads(count)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
-
-
 def _fit_loop(model: GaussianModel, cameras: Sequence[Camera], images: list[torch.Tensor], params: TrainParams,
               extent: float, progress: bool, device: torch.device,
               callback: Callable[[int, "GaussianOptimizer"], None] | None, strategy: Strategy | None,
-              lrs: dict[str, float] | None, desc: str) -> TrainResult:
+              lrs: dict[str, float] | None, desc: str, bulk_threads: int = 0) -> TrainResult:
     schedule = params.schedule()
     generator = torch.Generator().manual_seed(params.seed)
     rng = np.random.default_rng(params.seed)
     state = GaussianOptimizer(model.to(device), learning_rates(params, extent) if lrs is None else lrs, params, extent)
+    state.bulk_threads = bulk_threads
     strategy = DefaultStrategy(generator) if strategy is None else strategy
     strategy.initialize(state, schedule)
     fixed_background = torch.tensor(params.background, dtype=torch.float32, device=device)

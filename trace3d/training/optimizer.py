@@ -15,6 +15,7 @@ from typing import Callable
 import torch
 
 from ..gaussians import GaussianModel
+from ..threads import torch_threads
 from .params import TrainParams
 
 
@@ -66,6 +67,10 @@ class GaussianOptimizer:
         self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=fused or None)
         self.statistics: dict[str, torch.Tensor] = {}
         self._fills: dict[str, float] = {}
+        # torch threads for the Adam step and the default density control (0: the caller's): work
+        # that streams every Gaussian's tensors, element by element, so its result does not depend
+        # on the thread count (tested); the training loop sets the process's thread budget here
+        self.bulk_threads = 0
 
     # --- bookkeeping ---------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -100,7 +105,8 @@ class GaussianOptimizer:
         if self.params.visible_adam and visible is not None and visible.shape[0] == len(self.model):
             self.visible_step(torch.nonzero(visible).squeeze(1))
         else:
-            self.optimizer.step()
+            with torch_threads(self.bulk_threads):
+                self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
 
     @torch.no_grad()

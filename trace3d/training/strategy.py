@@ -25,6 +25,7 @@ from numba import njit, prange
 
 from ..gaussians import GaussianModel, quat_to_rotmat
 from ..scene import Camera
+from ..threads import torch_threads
 from .optimizer import GaussianOptimizer
 
 log = logging.getLogger(__name__)
@@ -100,8 +101,9 @@ class DefaultStrategy(Strategy):
         radii = out.radii if getattr(out, "radii", None) is not None else screen_radii(state.model, camera)
         add_stats(state, grad2d, out.visible, radii, camera.width, camera.height)
         if iteration > schedule["densify_from"] and iteration % schedule["densify_interval"] == 0:
-            event = densify_and_prune(state, iteration > schedule["opacity_reset_interval"], self.generator,
-                                      prune_by_opacity=iteration - self.last_reset >= p.opacity_reset_grace)
+            with torch_threads(state.bulk_threads):  # the same result with any thread count (tested)
+                event = densify_and_prune(state, iteration > schedule["opacity_reset_interval"], self.generator,
+                                          prune_by_opacity=iteration - self.last_reset >= p.opacity_reset_grace)
         if iteration % schedule["opacity_reset_interval"] == 0:
             state.reset_opacity()
             self.last_reset = iteration
