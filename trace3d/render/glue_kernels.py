@@ -496,19 +496,27 @@ def _sh_forward(means, sh_dc, sh_rest, center, degree, rows, colors):
 
 
 @njit(parallel=True, cache=True)
-def _sh_backward(means, sh_dc, sh_rest, center, degree, rows, g_colors, g_means, g_dc, g_rest):
-    """Gradients of the rows' colours (g_colors[j] belongs to Gaussian rows[j]; rows are distinct)
-    into g_means, g_dc and g_rest, which come in zeroed."""
-    n = rows.shape[0]
+def _sh_backward(means, sh_dc, sh_rest, center, degree, slot, g_colors, g_means, g_dc, g_rest):
+    """Gradients of the selected colours into g_means, g_dc and g_rest (uninitialised [N, ...] arrays,
+    every row written here): row g's colour gradient is g_colors[slot[g]], or zero where slot[g] < 0
+    (not selected) or the colour gradient is zero (not rendered in the view). Writing the zero rows
+    in the same parallel pass spares a separate single-threaded clearing of the arrays."""
+    n = means.shape[0]
+    k_rest = sh_rest.shape[1]
     count = (degree + 1) * (degree + 1)
     cx, cy, cz = center[0], center[1], center[2]
     for chunk in prange((n + _SH_CHUNK - 1) // _SH_CHUNK):
         b = np.zeros(16)
         db = np.zeros((16, 3))
-        for j in range(chunk * _SH_CHUNK, min(n, (chunk + 1) * _SH_CHUNK)):
-            if g_colors[j, 0] == 0 and g_colors[j, 1] == 0 and g_colors[j, 2] == 0:
-                continue  # not rendered in this view: zero gradients
-            g = rows[j]
+        for g in range(chunk * _SH_CHUNK, min(n, (chunk + 1) * _SH_CHUNK)):
+            j = slot[g]
+            if j < 0 or (g_colors[j, 0] == 0 and g_colors[j, 1] == 0 and g_colors[j, 2] == 0):
+                for c in range(3):
+                    g_means[g, c] = 0.0
+                    g_dc[g, 0, c] = 0.0
+                    for i in range(k_rest):
+                        g_rest[g, i, c] = 0.0
+                continue
             x, y, z, inv = _direction(means, g, cx, cy, cz)
             _sh_basis(x, y, z, degree, b, db, True)
             gdx = 0.0
@@ -526,6 +534,8 @@ def _sh_backward(means, sh_dc, sh_rest, center, degree, rows, g_colors, g_means,
                     gdx += gv * r * db[i, 0]
                     gdy += gv * r * db[i, 1]
                     gdz += gv * r * db[i, 2]
+                for i in range(count - 1, k_rest):  # coefficients beyond the degree
+                    g_rest[g, i, c] = 0.0
             # direction = (mean - centre) / |mean - centre|
             dot = x * gdx + y * gdy + z * gdz
             g_means[g, 0] = (gdx - x * dot) * inv
@@ -548,11 +558,14 @@ class _ShColors(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_colors):
         means, sh_dc, sh_rest, center = ctx.inputs
-        g_means = np.zeros(means.shape, means.dtype)
-        g_dc = np.zeros(sh_dc.shape, sh_dc.dtype)
-        g_rest = np.zeros(sh_rest.shape, sh_rest.dtype)
-        if ctx.rows.shape[0]:
-            _sh_backward(means, sh_dc, sh_rest, center, ctx.degree, ctx.rows,
+        n, rows = means.shape[0], ctx.rows
+        g_means = np.empty(means.shape, means.dtype)
+        g_dc = np.empty(sh_dc.shape, sh_dc.dtype)
+        g_rest = np.empty(sh_rest.shape, sh_rest.dtype)
+        if n:
+            slot = np.full(n, -1, np.int64)
+            slot[rows] = np.arange(rows.shape[0])
+            _sh_backward(means, sh_dc, sh_rest, center, ctx.degree, slot,
                          np.ascontiguousarray(g_colors.detach().numpy().astype(means.dtype, copy=False)),
                          g_means, g_dc, g_rest)
         return torch.from_numpy(g_means), torch.from_numpy(g_dc), torch.from_numpy(g_rest), None, None, None
