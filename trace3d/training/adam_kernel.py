@@ -27,16 +27,19 @@ from numba import njit, prange
 from ..errors import Trace3DError
 
 
+@njit(cache=True, inline="always")
+def _f32_constants(step_size, one_minus_b1, b2, one_minus_b2, inv_bc2_sqrt, eps):
+    """The update's constants in float32 (1 - b1 and 1 - b2 come in computed in float64:
+    1 - float32(0.999) would be off by 5e-5 relative)."""
+    return (np.float32(step_size), np.float32(one_minus_b1), np.float32(b2), np.float32(one_minus_b2),
+            np.float32(inv_bc2_sqrt), np.float32(eps))
+
+
 @njit(parallel=True, cache=True, fastmath=True)
 def _adam_clear(param, grad, m, v, step_size, one_minus_b1, b2, one_minus_b2, inv_bc2_sqrt, eps):
     """torch's Adam update element by element, then grad = 0."""
-    # 1 - b1 and 1 - b2 come in from float64 (1 - float32(0.999) would be off by 5e-5 relative)
-    one_minus_b1 = np.float32(one_minus_b1)
-    b2 = np.float32(b2)
-    one_minus_b2 = np.float32(one_minus_b2)
-    step_size = np.float32(step_size)
-    inv_bc2_sqrt = np.float32(inv_bc2_sqrt)
-    eps = np.float32(eps)
+    step_size, one_minus_b1, b2, one_minus_b2, inv_bc2_sqrt, eps = _f32_constants(
+        step_size, one_minus_b1, b2, one_minus_b2, inv_bc2_sqrt, eps)
     for i in prange(param.shape[0]):
         p = param[i]
         g = grad[i]
@@ -83,12 +86,8 @@ class CpuAdam:
 @njit(parallel=True, cache=True)
 def _adam_rows(param, grad, m, v, rows, step_size, one_minus_b1, b2, one_minus_b2, inv_bc2_sqrt, eps):
     """torch's Adam update on the rows ``rows`` of [N, D] float32 arrays only (others untouched)."""
-    one_minus_b1 = np.float32(one_minus_b1)
-    b2 = np.float32(b2)
-    one_minus_b2 = np.float32(one_minus_b2)
-    step_size = np.float32(step_size)
-    inv_bc2_sqrt = np.float32(inv_bc2_sqrt)
-    eps = np.float32(eps)
+    step_size, one_minus_b1, b2, one_minus_b2, inv_bc2_sqrt, eps = _f32_constants(
+        step_size, one_minus_b1, b2, one_minus_b2, inv_bc2_sqrt, eps)
     for j in prange(rows.shape[0]):
         i = rows[j]
         for c in range(param.shape[1]):
