@@ -760,3 +760,93 @@ def test_bulk_phases_do_not_depend_on_the_torch_thread_count():
         return h.hexdigest()
 
     assert run(1) == run(2)
+
+
+def _densify_reference(state, use_size_limits, generator, prune_by_opacity=True):
+    """densify_and_prune as three edits (clone: append, split: append + keep, prune: keep), the
+    way it was written before the single-copy edit: its twin."""
+    from trace3d.training.strategy import _limit_growth, mean_grads, reset_stats, split_gaussians
+
+    p = state.params
+    grads = mean_grads(state)
+    max_scale = state.model.scales.max(dim=1).values
+    high_grad = grads >= p.densify_grad_threshold
+    room = max(0, p.max_gaussians - len(state))
+    clone_mask = high_grad & (max_scale <= p.percent_dense * state.extent)
+    split_mask = high_grad & (max_scale > p.percent_dense * state.extent)
+    clone_mask, split_mask = _limit_growth(clone_mask, split_mask, grads, room, p.split_count)
+    cloned = int(clone_mask.sum())
+    if cloned:
+        state.append(state.model.subset(clone_mask))
+        split_mask = torch.cat([split_mask, torch.zeros(cloned, dtype=torch.bool)])
+    split = int(split_mask.sum())
+    if split:
+        state.append(split_gaussians(state.model.subset(split_mask), p.split_count, generator))
+        state.keep(torch.cat([~split_mask, torch.ones(split * p.split_count, dtype=torch.bool)]))
+    prune_mask = state.model.opacities < p.opacity_cull
+    if not prune_by_opacity:
+        prune_mask[:] = False
+    if use_size_limits:
+        prune_mask |= state.statistics["max_radii"] > p.max_screen_size
+        prune_mask |= state.model.scales.max(dim=1).values > p.max_world_size * state.extent
+    if bool(prune_mask.all()):
+        prune_mask[:] = False
+    pruned = int(prune_mask.sum())
+    if pruned:
+        state.keep(~prune_mask)
+    reset_stats(state)
+    return {"cloned": cloned, "split": split, "pruned": pruned, "total": len(state)}
+
+
+@pytest.mark.parametrize("case", ["all", "no_split", "nothing_pruned", "size_limits_off", "extras"])
+def test_densify_single_edit_equals_append_and_keep(case):
+    """densify_and_prune's one-copy edit gives bit for bit the parameters, Adam moments, statistics
+    and counts of clone, split and prune done one after another with append and keep."""
+    from trace3d.gaussians import GaussianModel
+    from trace3d.training.optimizer import GaussianOptimizer, learning_rates
+    from trace3d.training.params import TrainParams
+    from trace3d.training.strategy import densify_and_prune, reset_stats
+
+    g = torch.Generator().manual_seed(5)
+    n = 3000
+    log_scales = torch.randn(n, 2, generator=g) - 4.0
+    if case == "no_split":
+        log_scales = log_scales.clamp_max(-6.0)  # all small: clones only
+    extras = {"features": torch.randn(n, 4, generator=g)} if case == "extras" else {}
+    model = GaussianModel(means=torch.randn(n, 3, generator=g), quats=torch.randn(n, 4, generator=g),
+                          log_scales=log_scales, opacity_logits=torch.randn(n, generator=g) * 3,
+                          sh_dc=torch.randn(n, 1, 3, generator=g), sh_rest=torch.randn(n, 15, 3, generator=g),
+                          extras=extras)
+    if case == "nothing_pruned":
+        model.opacity_logits = model.opacity_logits.abs() + 1.0
+    params = TrainParams(max_gaussians=n + 700, max_screen_size=15.0, max_world_size=0.01)
+    stats = (torch.rand(n, generator=g) * 1.2e-3, torch.randint(0, 30, (n,), generator=g).float())
+    grads = {name: torch.randn(getattr(model, name).shape, generator=g) * 1e-2 for name in GaussianModel.PARAM_NAMES}
+    results = []
+    for fn in (densify_and_prune, _densify_reference):
+        state = GaussianOptimizer(model, learning_rates(params, 2.0), params, 2.0)
+        for name, grad in grads.items():
+            state.model.get(name).grad = grad.clone()
+        state.step()
+        reset_stats(state)
+        state.add_statistic("other", fill=7.0)
+        state.statistics["grad_accum"] += stats[0]
+        state.statistics["grad_count"] += 1
+        state.statistics["max_radii"] += stats[1] if case != "nothing_pruned" else 0
+        state.statistics["other"] += torch.arange(n, dtype=torch.float32)
+        use_limits = case not in ("size_limits_off", "nothing_pruned")
+        event = fn(state, use_limits, torch.Generator().manual_seed(0))
+        moments = [state.optimizer.state[gr["params"][0]][k] for gr in state.optimizer.param_groups
+                   for k in ("exp_avg", "exp_avg_sq")]
+        results.append((event, state.model.tensors(), moments, dict(state.statistics)))
+    (e1, t1, m1, s1), (e2, t2, m2, s2) = results
+    assert e1 == e2
+    assert e1["cloned"] > 0 and (e1["split"] > 0) == (case != "no_split")
+    assert (e1["pruned"] > 0) == (case != "nothing_pruned")
+    assert t1.keys() == t2.keys() and s1.keys() == s2.keys()
+    for name in t1:
+        assert torch.equal(t1[name].detach(), t2[name].detach()), name
+    for a, b in zip(m1, m2):
+        assert torch.equal(a, b)
+    for name in s1:
+        assert torch.equal(s1[name], s2[name]), name

@@ -35,7 +35,7 @@ import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 import torch
@@ -279,6 +279,19 @@ class GaussianModel:
 
     def to(self, device: str | torch.device) -> "GaussianModel":
         return self.map(lambda t: t.to(device))
+
+    @classmethod
+    def concat(cls, models: Sequence["GaussianModel"]) -> "GaussianModel":
+        """The Gaussians of ``models`` one after another, detached (every model must carry the same
+        extras)."""
+        if not models:
+            raise ValueError("GaussianModel.concat: no models.")
+        names = set(models[0].extras)
+        if any(set(m.extras) != names for m in models):
+            raise ValueError("GaussianModel.concat: the models carry different extras.")
+        core = {name: torch.cat([m.get(name).detach() for m in models]) for name in cls.PARAM_NAMES}
+        return cls(**core, extras={name: torch.cat([m.extras[name].detach() for m in models])
+                                   for name in models[0].extras})
 
     def subset(self, keep: torch.Tensor) -> "GaussianModel":
         """The Gaussians selected by ``keep`` ([N] bool or index tensor), detached."""

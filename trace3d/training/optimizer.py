@@ -183,6 +183,30 @@ class GaussianOptimizer:
         for name, value in self.statistics.items():
             self.statistics[name] = value[mask]
 
+    def edit(self, keep: torch.Tensor, new: GaussianModel | None = None) -> None:
+        """Keep the Gaussians where ``keep`` [N] bool is true, then append ``new`` (zero Adam moments,
+        statistics at their fill values): ``keep`` followed by ``append`` in one copy of every tensor,
+        with the same result."""
+        keep = keep.to(self.model.device)
+        if new is not None and set(new.extras) != set(self.model.extras):
+            raise ValueError(f"GaussianOptimizer.edit: extras {sorted(new.extras)} differ from the model's "
+                             f"{sorted(self.model.extras)}.")
+        rows = torch.nonzero(keep).squeeze(1)
+        count = 0 if new is None else len(new)
+        for name in self.model.names:
+            old = self.model.get(name)
+            extra = None if new is None else new.get(name).detach().to(old.device, old.dtype)
+
+            def edited(t: torch.Tensor, fill: torch.Tensor | None) -> torch.Tensor:
+                kept = t.index_select(0, rows)
+                return kept if fill is None else torch.cat([kept, fill], dim=0)
+
+            self.replace(name, edited(old.detach(), extra),
+                         lambda moment, extra=extra: edited(moment, None if extra is None else torch.zeros_like(extra)))
+        for name, value in self.statistics.items():
+            pad = torch.full((count,), self._fills[name], dtype=value.dtype, device=value.device)
+            self.statistics[name] = torch.cat([value.index_select(0, rows), pad])
+
     @torch.no_grad()
     def reset_opacity(self, max_opacity: float = 0.01) -> None:
         """Clamp every opacity to at most ``max_opacity`` and zero its Adam moments (3DGS reset)."""

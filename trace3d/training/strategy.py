@@ -198,27 +198,43 @@ def densify_and_prune(state: GaussianOptimizer, use_size_limits: bool, generator
 
     n_before = len(state)
     cloned = int(clone_mask.sum())
-    if cloned:
-        state.append(state.model.subset(clone_mask))
-        split_mask = torch.cat([split_mask, torch.zeros(cloned, dtype=torch.bool, device=split_mask.device)])
     split = int(split_mask.sum())
+    # The edit is clone (append copies), split (append children, drop the parents), then prune, done
+    # as one copy of every tensor: the rows after cloning and splitting are the old rows without the
+    # split parents, then the clones, then the children, and the pruning criteria are read from them.
+    model = state.model
+    parts = []
+    if cloned:
+        parts.append(model.subset(clone_mask))
     if split:
-        state.append(split_gaussians(state.model.subset(split_mask), p.split_count, generator))
-        keep = torch.cat([~split_mask, torch.ones(split * p.split_count, dtype=torch.bool, device=split_mask.device)])
-        state.keep(keep)
-
-    prune_mask = state.model.opacities < p.opacity_cull
+        parts.append(split_gaussians(model.subset(split_mask), p.split_count, generator))
+    added = GaussianModel.concat(parts) if parts else None
+    stay = ~split_mask
+    opacities = model.opacities.detach()[stay]
+    max_scale = model.scales.detach().max(dim=1).values[stay]
+    radii = state.statistics["max_radii"][stay]
+    if added is not None:
+        opacities = torch.cat([opacities, added.opacities.detach()])
+        max_scale = torch.cat([max_scale, added.scales.detach().max(dim=1).values])
+        radii = torch.cat([radii, torch.full((len(added),), state._fills["max_radii"], dtype=radii.dtype,
+                                             device=radii.device)])
+    prune_mask = opacities < p.opacity_cull
     if not prune_by_opacity:
         prune_mask[:] = False
     if use_size_limits:
-        prune_mask |= state.statistics["max_radii"] > p.max_screen_size
-        prune_mask |= state.model.scales.max(dim=1).values > p.max_world_size * state.extent
+        prune_mask |= radii > p.max_screen_size
+        prune_mask |= max_scale > p.max_world_size * state.extent
     if bool(prune_mask.all()):
-        log.warning("density control would prune all %d Gaussians; keeping them", len(state))
+        log.warning("density control would prune all %d Gaussians; keeping them", len(prune_mask))
         prune_mask[:] = False
     pruned = int(prune_mask.sum())
-    if pruned:
-        state.keep(~prune_mask)
+    if cloned or split or pruned:
+        n_stay = int(stay.sum())
+        keep_old = stay.clone()
+        keep_old[stay] = ~prune_mask[:n_stay]
+        if added is not None:
+            added = added.subset(~prune_mask[n_stay:])
+        state.edit(keep_old, added)
     reset_stats(state)
     log.debug("densify: %d -> %d (cloned %d, split %d, pruned %d)", n_before, len(state), cloned, split, pruned)
     return {"cloned": cloned, "split": split, "pruned": pruned, "total": len(state)}
