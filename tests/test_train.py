@@ -765,16 +765,10 @@ def test_bulk_phases_do_not_depend_on_the_torch_thread_count():
 def _densify_reference(state, use_size_limits, generator, prune_by_opacity=True):
     """densify_and_prune as three edits (clone: append, split: append + keep, prune: keep), the
     way it was written before the single-copy edit: its twin."""
-    from trace3d.training.strategy import _limit_growth, mean_grads, reset_stats, split_gaussians
+    from trace3d.training.strategy import densify_candidates, reset_stats, split_gaussians
 
     p = state.params
-    grads = mean_grads(state)
-    max_scale = state.model.scales.max(dim=1).values
-    high_grad = grads >= p.densify_grad_threshold
-    room = max(0, p.max_gaussians - len(state))
-    clone_mask = high_grad & (max_scale <= p.percent_dense * state.extent)
-    split_mask = high_grad & (max_scale > p.percent_dense * state.extent)
-    clone_mask, split_mask = _limit_growth(clone_mask, split_mask, grads, room, p.split_count)
+    clone_mask, split_mask = densify_candidates(state)
     cloned = int(clone_mask.sum())
     if cloned:
         state.append(state.model.subset(clone_mask))

@@ -188,14 +188,7 @@ def densify_and_prune(state: GaussianOptimizer, use_size_limits: bool, generator
         counts {"cloned", "split", "pruned", "total"}.
     """
     p = state.params
-    grads = mean_grads(state)
-    max_scale = state.model.scales.max(dim=1).values
-    high_grad = grads >= p.densify_grad_threshold
-    room = max(0, p.max_gaussians - len(state))
-    clone_mask = high_grad & (max_scale <= p.percent_dense * state.extent)
-    split_mask = high_grad & (max_scale > p.percent_dense * state.extent)
-    clone_mask, split_mask = _limit_growth(clone_mask, split_mask, grads, room, p.split_count)
-
+    clone_mask, split_mask = densify_candidates(state)
     n_before = len(state)
     cloned = int(clone_mask.sum())
     split = int(split_mask.sum())
@@ -238,6 +231,19 @@ def densify_and_prune(state: GaussianOptimizer, use_size_limits: bool, generator
     reset_stats(state)
     log.debug("densify: %d -> %d (cloned %d, split %d, pruned %d)", n_before, len(state), cloned, split, pruned)
     return {"cloned": cloned, "split": split, "pruned": pruned, "total": len(state)}
+
+
+def densify_candidates(state: GaussianOptimizer) -> tuple[torch.Tensor, torch.Tensor]:
+    """[N] bool masks of the Gaussians to clone (mean NDC gradient at the threshold, small) and to
+    split (the same, large), limited to the Gaussian budget (highest gradients first)."""
+    p = state.params
+    grads = mean_grads(state)
+    max_scale = state.model.scales.max(dim=1).values
+    high_grad = grads >= p.densify_grad_threshold
+    room = max(0, p.max_gaussians - len(state))
+    clone_mask = high_grad & (max_scale <= p.percent_dense * state.extent)
+    split_mask = high_grad & (max_scale > p.percent_dense * state.extent)
+    return _limit_growth(clone_mask, split_mask, grads, room, p.split_count)
 
 
 def _limit_growth(clone_mask: torch.Tensor, split_mask: torch.Tensor, grads: torch.Tensor, room: int,
