@@ -356,6 +356,11 @@ def test_optimizer_edits_carry_extras_and_statistics():
     assert bool((state.model.extras["features"] < before).all())
     group = next(g for g in state.optimizer.param_groups if g["name"] == "features")
     assert group["params"][0] is state.model.extras["features"]
+    # new Gaussians without the model's extras are refused, and nothing is edited
+    bare = GaussianModel(**{name: getattr(model, name)[:2] for name in GaussianModel.PARAM_NAMES})
+    with pytest.raises(ValueError, match=r"extras \[\] differ from the model's \['features', 'generation'\]"):
+        state.append(bare)
+    assert len(state) == 4
 
 
 def test_bad_extras_are_refused(tmp_path):

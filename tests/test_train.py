@@ -762,21 +762,41 @@ def test_bulk_phases_do_not_depend_on_the_torch_thread_count():
     assert run(1) == run(2)
 
 
+def _append_reference(state, new):
+    """GaussianOptimizer.append as written before edit(): concatenate, zero moments, fill statistics."""
+    for name in state.model.names:
+        old = state.model.get(name)
+        extra = new.get(name).detach()
+        state.replace(name, torch.cat([old.detach(), extra]),
+                      lambda moment, extra=extra: torch.cat([moment, torch.zeros_like(extra)]))
+    for name, value in state.statistics.items():
+        state.statistics[name] = torch.cat([value, torch.full((len(new),), state._fills[name], dtype=value.dtype)])
+
+
+def _keep_reference(state, mask):
+    """GaussianOptimizer.keep as written before edit(): boolean indexing of everything."""
+    for name in state.model.names:
+        state.replace(name, state.model.get(name).detach()[mask], lambda moment: moment[mask])
+    for name, value in state.statistics.items():
+        state.statistics[name] = value[mask]
+
+
 def _densify_reference(state, use_size_limits, generator, prune_by_opacity=True):
     """densify_and_prune as three edits (clone: append, split: append + keep, prune: keep), the
-    way it was written before the single-copy edit: its twin."""
+    way it was written before the single-copy edit, with the edits as they were written then: its
+    twin."""
     from trace3d.training.strategy import densify_candidates, reset_stats, split_gaussians
 
     p = state.params
     clone_mask, split_mask = densify_candidates(state)
     cloned = int(clone_mask.sum())
     if cloned:
-        state.append(state.model.subset(clone_mask))
+        _append_reference(state, state.model.subset(clone_mask))
         split_mask = torch.cat([split_mask, torch.zeros(cloned, dtype=torch.bool)])
     split = int(split_mask.sum())
     if split:
-        state.append(split_gaussians(state.model.subset(split_mask), p.split_count, generator))
-        state.keep(torch.cat([~split_mask, torch.ones(split * p.split_count, dtype=torch.bool)]))
+        _append_reference(state, split_gaussians(state.model.subset(split_mask), p.split_count, generator))
+        _keep_reference(state, torch.cat([~split_mask, torch.ones(split * p.split_count, dtype=torch.bool)]))
     prune_mask = state.model.opacities < p.opacity_cull
     if not prune_by_opacity:
         prune_mask[:] = False
@@ -787,7 +807,7 @@ def _densify_reference(state, use_size_limits, generator, prune_by_opacity=True)
         prune_mask[:] = False
     pruned = int(prune_mask.sum())
     if pruned:
-        state.keep(~prune_mask)
+        _keep_reference(state, ~prune_mask)
     reset_stats(state)
     return {"cloned": cloned, "split": split, "pruned": pruned, "total": len(state)}
 

@@ -1,14 +1,15 @@
 """2DGS training: parameters, the optimiser, density-control strategies, the loop and the step.
 
     params.py     TrainParams (the 2DGS schedule, scaled)
-    optimizer.py  GaussianOptimizer: Adam over every attribute of a GaussianModel, append / keep
+    optimizer.py  GaussianOptimizer: Adam over every attribute of a GaussianModel, append / keep / edit
     strategy.py   Strategy hooks and the 2DGS adaptive density control (DefaultStrategy)
     loop.py       fit(): the photometric training loop; evaluate_views()
     step.py       run_gaussians(): the `gaussians` pipeline step and its files
 """
 
+from ..threads import torch_threads
 from .loop import (TrainingDiverged, TrainResult, evaluate_views, exponential_lr, fit, points_extent,
-                   render_view, resolve_device, scene_extent, torch_threads)
+                   render_view, resolve_device, scene_extent)
 from .optimizer import GaussianOptimizer, learning_rates
 from .params import TrainParams
 from .step import failed_dir_for, load_images, read_pose_cameras, run_gaussians

@@ -115,11 +115,10 @@ def adam_rows(param: torch.Tensor, grad: torch.Tensor, m: torch.Tensor, v: torch
     """Adam on the rows ``rows`` ([R] int64) of a parameter [N, ...] in place (parameter and moments);
     the other rows are left exactly as they are. ``step_size`` = lr / (1 - b1^t), ``inv_bc2_sqrt`` =
     1 / sqrt(1 - b2^t). A numba pass on contiguous float32 CPU tensors, else :func:`adam_rows_torch`."""
-    n = param.shape[0]
-    flat = [t.reshape(n, -1) if t.is_contiguous() else None for t in (param, grad, m, v)]
-    if (param.device.type == "cpu" and all(f is not None and f.dtype == torch.float32 for f in flat)
-            and all(f.data_ptr() == t.data_ptr() for f, t in zip(flat, (param, grad, m, v)))):
-        arrays = [f.detach().numpy() for f in flat]
+    tensors = (param, grad, m, v)
+    if all(t.device.type == "cpu" and t.dtype == torch.float32 and t.is_contiguous() for t in tensors):
+        # a contiguous tensor's [N, D] reshape is a view, so the kernel updates the tensors themselves
+        arrays = [t.detach().reshape(param.shape[0], -1).numpy() for t in tensors]
         _adam_rows(*arrays, np.ascontiguousarray(rows.cpu().numpy(), dtype=np.int64), step_size, 1.0 - b1, b2,
                    1.0 - b2, inv_bc2_sqrt, eps)
         return

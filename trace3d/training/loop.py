@@ -44,7 +44,7 @@ from ..errors import ConfigError, Trace3DError
 from ..gaussians import GaussianModel
 from ..losses import depth_normal_consistency, photometric_loss, psnr, ssim
 from ..scene import Camera
-from ..threads import torch_threads  # noqa: F401  (re-exported)
+from ..threads import torch_threads
 from .optimizer import GaussianOptimizer, learning_rates
 from .params import TrainParams
 from .strategy import DefaultStrategy, Strategy

@@ -158,54 +158,36 @@ class GaussianOptimizer:
 
         ``new`` must carry the same extras as the model.
         """
-        if set(new.extras) != set(self.model.extras):
-            raise ValueError(f"GaussianOptimizer.append: extras {sorted(new.extras)} differ from the model's "
-                             f"{sorted(self.model.extras)}.")
-        count = len(new)
-        for name in self.model.names:
-            old = self.model.get(name)
-            extra = new.get(name).detach().to(old.device, old.dtype)
-
-            def grow(moment: torch.Tensor, extra=extra) -> torch.Tensor:
-                return torch.cat([moment, torch.zeros_like(extra)], dim=0)
-
-            self.replace(name, torch.cat([old.detach(), extra], dim=0), grow)
-        for name, value in self.statistics.items():
-            pad = torch.full((count,), self._fills[name], dtype=value.dtype, device=value.device)
-            self.statistics[name] = torch.cat([value, pad])
+        self.edit(None, new)
 
     def keep(self, mask: torch.Tensor) -> None:
         """Keep only the Gaussians where ``mask`` [N] bool is true (attributes, moments, statistics)."""
-        mask = mask.to(self.model.device)
-        for name in self.model.names:
-            old = self.model.get(name)
-            self.replace(name, old.detach()[mask], lambda moment: moment[mask])
-        for name, value in self.statistics.items():
-            self.statistics[name] = value[mask]
+        self.edit(mask)
 
-    def edit(self, keep: torch.Tensor, new: GaussianModel | None = None) -> None:
-        """Keep the Gaussians where ``keep`` [N] bool is true, then append ``new`` (zero Adam moments,
-        statistics at their fill values): ``keep`` followed by ``append`` in one copy of every tensor,
-        with the same result."""
-        keep = keep.to(self.model.device)
+    def edit(self, keep: torch.Tensor | None, new: GaussianModel | None = None) -> None:
+        """Keep the Gaussians where ``keep`` [N] bool is true (None: all), then append ``new`` (zero
+        Adam moments, statistics at their fill values), in one copy of every tensor.
+
+        ``new`` must carry the same extras as the model.
+        """
         if new is not None and set(new.extras) != set(self.model.extras):
-            raise ValueError(f"GaussianOptimizer.edit: extras {sorted(new.extras)} differ from the model's "
-                             f"{sorted(self.model.extras)}.")
-        rows = torch.nonzero(keep).squeeze(1)
-        count = 0 if new is None else len(new)
+            raise ValueError(f"GaussianOptimizer: the new Gaussians' extras {sorted(new.extras)} differ from the "
+                             f"model's {sorted(self.model.extras)}.")
+        rows = None if keep is None else torch.nonzero(keep.to(self.model.device)).squeeze(1)
+
+        def edited(t: torch.Tensor, fill: torch.Tensor | None) -> torch.Tensor:
+            kept = t if rows is None else t.index_select(0, rows)
+            return kept if fill is None else torch.cat([kept, fill], dim=0)
+
         for name in self.model.names:
             old = self.model.get(name)
             extra = None if new is None else new.get(name).detach().to(old.device, old.dtype)
-
-            def edited(t: torch.Tensor, fill: torch.Tensor | None) -> torch.Tensor:
-                kept = t.index_select(0, rows)
-                return kept if fill is None else torch.cat([kept, fill], dim=0)
-
             self.replace(name, edited(old.detach(), extra),
                          lambda moment, extra=extra: edited(moment, None if extra is None else torch.zeros_like(extra)))
+        count = 0 if new is None else len(new)
         for name, value in self.statistics.items():
             pad = torch.full((count,), self._fills[name], dtype=value.dtype, device=value.device)
-            self.statistics[name] = torch.cat([value.index_select(0, rows), pad])
+            self.statistics[name] = edited(value, pad if count else None)
 
     @torch.no_grad()
     def reset_opacity(self, max_opacity: float = 0.01) -> None:

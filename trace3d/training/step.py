@@ -21,7 +21,8 @@ from ..gaussians import GaussianModel, init_from_depth, init_from_points, init_r
 from ..io import write_json
 from ..params import from_mapping, to_dict
 from ..scene import Camera, Scene, read_cameras, require_known_poses
-from .loop import TrainingDiverged, evaluate_views, fit, points_extent, scene_extent, torch_threads
+from ..threads import torch_threads
+from .loop import TrainingDiverged, evaluate_views, fit, points_extent, scene_extent
 from .params import TrainParams
 
 log = logging.getLogger(__name__)
