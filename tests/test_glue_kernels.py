@@ -296,3 +296,35 @@ def test_render_rejects_features_function_of_wrong_shape():
     model, cam = _visible_and_hidden_model(n=60)
     with pytest.raises(Trace3DError, match=r"features\(rows\)"):
         render(model.splats(), cam, lambda rows: torch.zeros(len(model) + 1, 3))
+
+
+def test_visible_mask_is_the_projections_visible_bit_for_bit():
+    """The one-pass visibility test of compact gradients equals project(...).visible exactly: splats
+    behind, beside and in front of the camera, centres right at the near plane (float32 rounding of
+    the depth decides), disks crossing the camera plane, opacities around the 1/255 cut-off and
+    footprints at the image border."""
+    from trace3d.render import Splats, project
+    from trace3d.render.projection import visible_mask
+
+    cam = _camera(2)
+    n = 6000
+    g = torch.Generator().manual_seed(7)
+    w2c = np.asarray(cam.world_to_camera)
+    # camera-space positions, then to the world
+    p_cam = torch.cat([torch.rand(n, 2, generator=g, dtype=torch.float64) * 4 - 2,
+                       torch.rand(n, 1, generator=g, dtype=torch.float64) * 5 - 1], 1)
+    p_cam[:300, 2] = 0.01 + (torch.rand(300, generator=g, dtype=torch.float64) - 0.5) * 2e-8  # at the near plane
+    means = (p_cam - torch.as_tensor(w2c[:3, 3])) @ torch.as_tensor(w2c[:3, :3])
+    quats = torch.randn(n, 4, generator=g)
+    scales = torch.rand(n, 2, generator=g) * 0.3 + 1e-3
+    scales[:500] *= 20  # large disks, many cross the camera plane
+    opac = torch.rand(n, generator=g)
+    opac[500:900] = 1 / 255 + (torch.rand(400, generator=g) - 0.5) * 1e-5
+    splats = Splats(means.float(), quats, scales, opac)
+    expected = project(splats, cam, 0.01).visible
+    ours = visible_mask(splats, cam, 0.01)
+    assert ours.dtype == torch.bool and torch.equal(ours, expected)
+    assert 0.1 * n < int(expected.sum()) < 0.9 * n
+    # the float64 path is the projection itself
+    splats64 = Splats(*(t.double() for t in splats))
+    assert torch.equal(visible_mask(splats64, cam, 0.01), project(splats64, cam, 0.01).visible)

@@ -189,6 +189,38 @@ class TestSSIM:
         finally:
             set_fused(True)
 
+    def test_fused_ssim_reuses_the_target_statistics_only_while_valid(self):
+        """The blurred target statistics are cached per target tensor: a hit gives the uncached value
+        and gradient bit for bit, an in-place change of the target is noticed, and the cache stays
+        within its byte budget (dropping the least recently used)."""
+        from trace3d.loss_kernels import _target_cache, _TargetStats, fused_ssim
+
+        g = torch.Generator().manual_seed(5)
+        b = torch.rand(20, 30, 3, generator=g)
+
+        def value_and_grad(image, target):
+            x = image.clone().requires_grad_()
+            s = fused_ssim(x, target)
+            (grad,) = torch.autograd.grad(s, x)
+            return s, grad
+
+        a1, a2 = torch.rand(20, 30, 3, generator=g), torch.rand(20, 30, 3, generator=g)
+        value_and_grad(a1, b)  # fills the cache for b
+        assert id(b) in _target_cache.entries
+        hit, fresh = value_and_grad(a2, b), value_and_grad(a2, b.clone())
+        assert torch.equal(hit[0], fresh[0]) and torch.equal(hit[1], fresh[1])
+        b.mul_(0.5)  # the cached statistics are stale now
+        changed, fresh = value_and_grad(a2, b), value_and_grad(a2, b.clone())
+        assert torch.equal(changed[0], fresh[0]) and torch.equal(changed[1], fresh[1])
+        assert not torch.equal(changed[0], hit[0])
+        small = _TargetStats(max_bytes=2 * 20 * 30 * 3 * 4 + 1)  # room for one target's statistics
+        from trace3d.loss_kernels import _window
+
+        y1, y2 = a1.numpy(), a2.numpy()
+        small.get(a1, y1, _window(np.float32))
+        small.get(a2, y2, _window(np.float32))
+        assert list(small.entries) == [id(a2)] and small.bytes <= small.max_bytes
+
     def test_photometric_loss_weights(self):
         a = torch.zeros(16, 16, 3)
         b = torch.full((16, 16, 3), 0.5)
@@ -864,3 +896,61 @@ def test_densify_single_edit_equals_append_and_keep(case):
         assert torch.equal(a, b)
     for name in s1:
         assert torch.equal(s1[name], s2[name]), name
+
+
+# ----------------------------------------------------------------------------------------------
+# Compact gradients (trace3d.training.sparse)
+# ----------------------------------------------------------------------------------------------
+
+
+def test_row_copies_equal_torch_index_operations():
+    from trace3d.training.sparse import clear_rows, gather_rows, scatter_rows
+
+    g = torch.Generator().manual_seed(0)
+    n = 500
+    tensors = [torch.randn(n, 3, generator=g), torch.randn(n, 15, 3, generator=g), torch.randn(n, generator=g),
+               torch.randint(0, 9, (n, 2), generator=g), torch.randn(n, 4, generator=g, dtype=torch.float64)]
+    rows = torch.nonzero(torch.rand(n, generator=g) < 0.3).squeeze(1)
+    gathered = gather_rows(tensors, rows)
+    for t, out in zip(tensors, gathered):
+        assert out.dtype == t.dtype and torch.equal(out, t.index_select(0, rows))
+    ours = [t.clone() for t in tensors]
+    twin = [t.clone() for t in tensors]
+    sources = [torch.randn(out.shape, generator=g).to(out.dtype) for out in gathered]
+    scatter_rows(ours, rows, sources)
+    for t, s in zip(twin, sources):
+        t.index_copy_(0, rows, s)
+    assert all(torch.equal(a, b) for a, b in zip(ours, twin))
+    clear_rows(ours, rows)
+    for t in twin:
+        t.index_fill_(0, rows, 0)
+    assert all(torch.equal(a, b) for a, b in zip(ours, twin))
+    assert not torch.equal(ours[1], tensors[1]) and torch.equal(ours[1][0 if 0 not in rows else 1], tensors[1][0 if 0 not in rows else 1])
+
+
+@pytest.mark.parametrize("overrides", [{}, {"visible_adam": True}])
+def test_compact_gradients_give_the_dense_fit_bit_for_bit(overrides, monkeypatch):
+    """A fit with compact gradients (the default on the CPU) equals the dense autograd path exactly:
+    parameters, history and density events, through clones, splits, prunes and an opacity reset, with
+    views that see only part of the Gaussians."""
+    from trace3d.training import loop, sparse
+
+    cameras, images = plane_views(6)
+    model = init_from_points(plane_points(), np.full((300, 3), 0.5), sh_degree=1, seed=0)
+    rows, _, _ = sparse.visible_rows(model, cameras[0], 0.01)
+    assert 0 < rows.numel() < len(model)  # the views see part of the plane
+    params = dict(iterations=90, densify_from=20, densify_until=80, densify_interval=10, opacity_reset_interval=40,
+                  normal_from=30, sh_degree_interval=30, **overrides)
+    views = []
+    monkeypatch.setattr(loop, "CompactView", lambda *a: views.append(1) or sparse.CompactView(*a))
+    dense = fit(model, cameras, images, tiny_params(sparse_grad=False, **params), progress=False)
+    assert not views
+    compact = fit(model, cameras, images, tiny_params(**params), progress=False)
+    assert len(views) == 90
+    assert any(e["split"] + e["cloned"] > 0 for e in compact.densify_events)
+    assert any(e.get("pruned", 0) > 0 for e in compact.densify_events)
+    for name in GaussianModel.PARAM_NAMES:
+        assert torch.equal(getattr(dense.model, name), getattr(compact.model, name)), name
+    assert [{k: v for k, v in r.items() if k != "seconds"} for r in dense.history] == \
+        [{k: v for k, v in r.items() if k != "seconds"} for r in compact.history]
+    assert dense.densify_events == compact.densify_events

@@ -28,6 +28,9 @@ twin the tests compare with (values and gradients) and what other devices use.
 
 from __future__ import annotations
 
+import weakref
+from collections import OrderedDict
+
 import numpy as np
 import torch
 from numba import njit, prange
@@ -91,24 +94,40 @@ def _blur(src, g, tmp, out):
 
 
 @njit(parallel=True, cache=True)
-def _ssim_terms(x, y, g, c1, c2, two, want_grad):
-    """SSIM per value of x, y [C, H, W] and, with want_grad, the three per-pixel partials
-    (dS/dmx, dS/dexx, dS/dexy) stacked as [3C, H, W].  The constants come in the images' dtype, so
-    float32 stays float32 (numba would promote a float literal to float64)."""
-    c, h, w = x.shape
-    stats = np.empty((5 * c, h, w), x.dtype)
+def _target_stats(y, g):
+    """The target's blurred statistics (mean of y, mean of y^2) [2C, H, W] of y [H, W, C]: they do
+    not depend on the image, so a training view computes them once (:class:`_TargetStats`)."""
+    h, w, c = y.shape
+    stats = np.empty((2 * c, h, w), y.dtype)
     uw = np.uint64(w)
     for job in prange(c * h):
         ch = job // h
         i = job % h
         for j in range(uw):
-            a = x[ch, i, j]
-            b = y[ch, i, j]
+            b = y[i, j, ch]
+            stats[ch, i, j] = b
+            stats[c + ch, i, j] = b * b
+    blurred = np.empty_like(stats)
+    _blur(stats, g, np.empty_like(stats), blurred)
+    return blurred
+
+
+@njit(parallel=True, cache=True)
+def _ssim_terms(x, y, ystats, g, c1, c2, two, want_grad):
+    """SSIM per value of x, y [H, W, C] (ystats: :func:`_target_stats` of y) and, with want_grad, the
+    three per-pixel partials (dS/dmx, dS/dexx, dS/dexy) stacked as [3C, H, W].  The constants come in
+    the images' dtype, so float32 stays float32 (numba would promote a float literal to float64)."""
+    h, w, c = x.shape
+    stats = np.empty((3 * c, h, w), x.dtype)
+    uw = np.uint64(w)
+    for job in prange(c * h):
+        ch = job // h
+        i = job % h
+        for j in range(uw):
+            a = x[i, j, ch]
             stats[ch, i, j] = a
-            stats[c + ch, i, j] = b
-            stats[2 * c + ch, i, j] = a * a
-            stats[3 * c + ch, i, j] = b * b
-            stats[4 * c + ch, i, j] = a * b
+            stats[c + ch, i, j] = a * a
+            stats[2 * c + ch, i, j] = a * y[i, j, ch]
     tmp = np.empty_like(stats)
     blurred = np.empty_like(stats)
     _blur(stats, g, tmp, blurred)
@@ -119,10 +138,10 @@ def _ssim_terms(x, y, g, c1, c2, two, want_grad):
         i = job % h
         for j in range(uw):
             mx = blurred[ch, i, j]
-            my = blurred[c + ch, i, j]
-            sx = blurred[2 * c + ch, i, j] - mx * mx
-            sy = blurred[3 * c + ch, i, j] - my * my
-            sxy = blurred[4 * c + ch, i, j] - mx * my
+            my = ystats[ch, i, j]
+            sx = blurred[c + ch, i, j] - mx * mx
+            sy = ystats[c + ch, i, j] - my * my
+            sxy = blurred[2 * c + ch, i, j] - mx * my
             a1 = two * mx * my + c1
             a2 = two * sxy + c2
             b1 = mx * mx + my * my + c1
@@ -139,24 +158,62 @@ def _ssim_terms(x, y, g, c1, c2, two, want_grad):
 
 @njit(parallel=True, cache=True)
 def _ssim_input_grad(x, y, blurred_partials, scale, out):
-    c, h, w = x.shape
+    """dL/dx [H, W, C] from the blurred partials [3C, H, W] of x, y [H, W, C]."""
+    h, w, c = x.shape
     uw = np.uint64(w)
-    for job in prange(c * h):
-        ch = job // h
-        i = job % h
+    for i in prange(h):
         for j in range(uw):
-            out[ch, i, j] = scale * (blurred_partials[ch, i, j] + (x[ch, i, j] + x[ch, i, j]) * blurred_partials[c + ch, i, j]
-                                     + y[ch, i, j] * blurred_partials[2 * c + ch, i, j])
+            for ch in range(c):
+                out[i, j, ch] = scale * (blurred_partials[ch, i, j] + (x[i, j, ch] + x[i, j, ch]) * blurred_partials[c + ch, i, j]
+                                         + y[i, j, ch] * blurred_partials[2 * c + ch, i, j])
+
+
+class _TargetStats:
+    """The blurred target statistics of recent targets, least recently used dropped first beyond
+    ``max_bytes`` (a fit's views: 33 MB for 72 views at 160x120).  An entry is valid while its tensor
+    lives unmodified (a weak reference and torch's version counter)."""
+
+    def __init__(self, max_bytes: int = 256 << 20):
+        self.max_bytes = max_bytes
+        self.entries: OrderedDict[int, tuple] = OrderedDict()
+        self.bytes = 0
+
+    def get(self, target: torch.Tensor, y: np.ndarray, g: np.ndarray) -> np.ndarray:
+        key = id(target)
+        entry = self.entries.get(key)
+        if (entry is not None and entry[0]() is target and entry[1] == target._version
+                and entry[2].dtype == y.dtype and entry[2].shape[1:] == y.shape[:2]):
+            self.entries.move_to_end(key)
+            return entry[2]
+        stats = _target_stats(y, g)
+        self._drop(key)
+        for k in [k for k, e in self.entries.items() if e[0]() is None]:  # targets that are gone
+            self._drop(k)
+        if stats.nbytes <= self.max_bytes:
+            while self.entries and self.bytes + stats.nbytes > self.max_bytes:
+                self._drop(next(iter(self.entries)))
+            self.entries[key] = (weakref.ref(target), target._version, stats)
+            self.bytes += stats.nbytes
+        return stats
+
+    def _drop(self, key: int) -> None:
+        entry = self.entries.pop(key, None)
+        if entry is not None:
+            self.bytes -= entry[2].nbytes
+
+
+_target_cache = _TargetStats()
 
 
 class _FusedSSIM(torch.autograd.Function):
     @staticmethod
     def forward(ctx, image, target):
         dt = np.float64 if image.dtype == torch.float64 else np.float32
-        x = np.ascontiguousarray(image.detach().numpy().astype(dt, copy=False).transpose(2, 0, 1))
-        y = np.ascontiguousarray(target.detach().numpy().astype(dt, copy=False).transpose(2, 0, 1))
+        x = np.ascontiguousarray(image.detach().numpy().astype(dt, copy=False))
+        y = np.ascontiguousarray(target.detach().numpy().astype(dt, copy=False))
         g = _window(dt)
-        s_map, partials = _ssim_terms(x, y, g, dt(SSIM_C1), dt(SSIM_C2), dt(2.0), ctx.needs_input_grad[0])
+        ystats = _target_cache.get(target, y, g)
+        s_map, partials = _ssim_terms(x, y, ystats, g, dt(SSIM_C1), dt(SSIM_C2), dt(2.0), ctx.needs_input_grad[0])
         ctx.saved = (x, y, g, partials)
         # the mean in float64, then the image's dtype
         return torch.tensor(float(s_map.astype(np.float64).mean()), dtype=image.dtype)
@@ -170,7 +227,7 @@ class _FusedSSIM(torch.autograd.Function):
         _blur(partials, g, np.empty_like(partials), blurred)
         grad = np.empty_like(x)
         _ssim_input_grad(x, y, blurred, x.dtype.type(float(g_out) / x.size), grad)
-        return torch.from_numpy(grad.transpose(1, 2, 0).copy()), None
+        return torch.from_numpy(grad), None
 
 
 def fused_ssim_applies(image: torch.Tensor, target: torch.Tensor) -> bool:

@@ -175,6 +175,12 @@ def _rotation(qw, qx, qy, qz):
 def _camera_axes(quats, R, pcam, g):
     """Gaussian g's rotation (as :func:`_rotation`), its camera-space axes t_u, t_v, t_w (columns of
     R @ Rq) and the sign that turns t_w towards the camera."""
+    return _camera_axes_at(quats, R, g, float(pcam[g, 0]), float(pcam[g, 1]), float(pcam[g, 2]))
+
+
+@njit(cache=True, inline="always")
+def _camera_axes_at(quats, R, g, pc0, pc1, pc2):
+    """:func:`_camera_axes` with the camera-space centre given as numbers."""
     w, x, y, z, inv, q00, q01, q02, q10, q11, q12, q20, q21, q22 = _rotation(
         float(quats[g, 0]), float(quats[g, 1]), float(quats[g, 2]), float(quats[g, 3]))
     au0 = R[0, 0] * q00 + R[0, 1] * q10 + R[0, 2] * q20
@@ -187,7 +193,7 @@ def _camera_axes(quats, R, pcam, g):
     aw1 = R[1, 0] * q02 + R[1, 1] * q12 + R[1, 2] * q22
     aw2 = R[2, 0] * q02 + R[2, 1] * q12 + R[2, 2] * q22
     sign = 1.0
-    if aw0 * pcam[g, 0] + aw1 * pcam[g, 1] + aw2 * pcam[g, 2] > 0:
+    if aw0 * pc0 + aw1 * pc1 + aw2 * pc2 > 0:
         sign = -1.0
     return (w, x, y, z, inv, q00, q01, q02, q10, q11, q12, q20, q21, q22, au0, au1, au2, av0, av1, av2,
             aw0, aw1, aw2, sign)

@@ -851,7 +851,7 @@ def sum_chunks(grads):
 
 class _Rasterize(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, geom15: Tensor, vals: Tensor, binning: Binning, near: float):
+    def forward(ctx, geom15: Tensor, vals: Tensor, binning: Binning, near: float, split: int):
         geom = _geom_array(geom15)
         vals_np = _f32(vals)
         egeom = binning.entry_geometry(geom)
@@ -864,13 +864,17 @@ class _Rasterize(torch.autograd.Function):
         ctx.in_dtype = (geom15.dtype, vals.dtype, geom15.device)
         ctx.saved = (egeom, vals_np, final_t, depth_ref, last, median_at)
         dev, dt = vals.device, vals.dtype
-        outs = [torch.from_numpy(a).to(device=dev, dtype=dt) for a in (acc, acc_z, acc_z2, final_t, median_z)]
+        # the blended values as two outputs, columns [:split] and [split:] (features and normals), so
+        # that the backward gets their gradients without two zero-filled slice gradients and their sum
+        ctx.split = split
+        parts = (np.ascontiguousarray(acc[..., :split]), np.ascontiguousarray(acc[..., split:]))
+        outs = [torch.from_numpy(a).to(device=dev, dtype=dt) for a in parts + (acc_z, acc_z2, final_t, median_z)]
         ref = torch.from_numpy(depth_ref).to(device=dev, dtype=dt)
         ctx.mark_non_differentiable(ref)
         return tuple(outs) + (ref,)
 
     @staticmethod
-    def backward(ctx, v_acc, v_z, v_z2, v_final_t, v_median, v_ref):
+    def backward(ctx, v_head, v_tail, v_z, v_z2, v_final_t, v_median, v_ref):
         b = ctx.binning
         egeom, vals_np, final_t, depth_ref, last, median_at = ctx.saved
         h, w, k = b.height, b.width, vals_np.shape[1]
@@ -880,16 +884,20 @@ class _Rasterize(torch.autograd.Function):
                 return np.zeros(shape, np.float32)
             return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
 
+        v_acc = np.empty((h, w, k), np.float32)
+        v_acc[..., :ctx.split] = arr(v_head, (h, w, ctx.split))
+        v_acc[..., ctx.split:] = arr(v_tail, (h, w, k - ctx.split))
+
         n_chunks = max(1, numba.get_num_threads())
         grads = backward_kernel(egeom, b.entry_boxes, b.lists, vals_np, b.offsets, b.width, b.height, b.tiles_x,
                                 float(ctx.near), n_chunks, final_t, depth_ref, last, median_at,
-                                arr(v_acc, (h, w, k)), arr(v_z, (h, w)), arr(v_z2, (h, w)),
+                                v_acc, arr(v_z, (h, w)), arr(v_z2, (h, w)),
                                 arr(v_final_t, (h, w)), arr(v_median, (h, w)))
         g_geom_np, g_vals_np = sum_chunks(grads)
         gdt, vdt, dev = ctx.in_dtype
         g_geom = torch.from_numpy(g_geom_np).to(device=dev, dtype=gdt)
         g_vals = torch.from_numpy(g_vals_np).to(device=dev, dtype=vdt)
-        return g_geom, g_vals, None, None
+        return g_geom, g_vals, None, None, None
 
 
 def rasterize(proj: Projected, features: Tensor, width: int, height: int, background: Tensor,
@@ -906,14 +914,15 @@ def rasterize(proj: Projected, features: Tensor, width: int, height: int, backgr
         binning = Binning(proj, width, height)
     c = features.shape[1]
     vals = torch.cat([features, proj.normals.to(features.dtype)], dim=1)
-    acc, acc_z, acc_z2, final_t, median_z, depth_ref = _Rasterize.apply(pack_geometry(proj), vals, binning, near)
+    feats, normal, acc_z, acc_z2, final_t, median_z, depth_ref = _Rasterize.apply(pack_geometry(proj), vals, binning,
+                                                                                  near, c)
     return {
-        "features": acc[..., :c] + final_t[..., None] * background,
+        "features": feats + final_t[..., None] * background,
         "alpha": 1.0 - final_t,
         "depth": acc_z,
         "depth2": acc_z2,
         "depth_ref": depth_ref,
-        "normal": acc[..., c:],
+        "normal": normal,
         "median_depth": median_z,
         "final_t": final_t,
         "pairs": binning.pairs,

@@ -37,7 +37,7 @@ from torch import Tensor
 from ..errors import Trace3DError
 from ..geometry import quat_to_rotmat  # noqa: F401  (re-exported by trace3d.render)
 from ..scene import Camera
-from .glue_kernels import camera_points, splat_frames
+from .glue_kernels import _camera_axes_at, camera_points, splat_frames, use_fused
 
 ALPHA_MIN = 1.0 / 255.0  # skip a pair whose alpha is below this
 ALPHA_MAX = 0.99  # clamp alpha
@@ -259,48 +259,116 @@ def footprint_boxes(ray_t: Tensor, means2d: Tensor, opacities: Tensor, in_front:
     return boxes
 
 
+@njit(cache=True, inline="always")
+def _axis_range(ti0, ti1, ti2, t20, t21, t22, c22, r2, m, filt, size, margin, near):
+    """The half-open pixel range (first, last) of one axis of a splat's footprint box (the body of
+    :func:`_boxes_kernel`, shared with :func:`_visibility_kernel`)."""
+    if c22 < 0:
+        c02 = (ti0 * r2) * t20 + (ti1 * r2) * t21 + (ti2 * -1.0) * t22
+        c00 = (ti0 * r2) * ti0 + (ti1 * r2) * ti1 + (ti2 * -1.0) * ti2
+        disc = np.sqrt(max(c02 * c02 - c00 * c22, 0.0))
+        a = (c02 + disc) / c22
+        b = (c02 - disc) / c22
+        lo = min(a, b)
+        hi = max(a, b)
+    else:
+        lo, hi = _clipped_disk_range_nb(ti0, ti1, ti2, t20, t21, t22, np.sqrt(max(r2, 0.0)), near)
+    lo = min(lo, m - filt) - margin
+    hi = max(hi, m + filt) + margin
+    if lo != lo:
+        lo = -np.inf
+    if hi != hi:
+        hi = np.inf
+    first = np.ceil(min(max(lo - 0.5, -1.0), size + 1.0))
+    last = np.floor(min(max(hi - 0.5, -1.0), size + 1.0)) + 1.0
+    return int(min(max(first, 0.0), size)), int(min(max(last, 0.0), size))
+
+
+@njit(cache=True, inline="always")
+def _box(t00, t01, t02, t10, t11, t12, t20, t21, t22, m0, m1, o, width, height, margin, filter_half, near):
+    """(x0, y0, x1, y1) of a splat in front of the camera with opacity above the cut-off."""
+    level = np.log(max(o, 1e-30) * 255.0)
+    r2 = 2.0 * level
+    c22 = (t20 * r2) * t20 + (t21 * r2) * t21 + (t22 * -1.0) * t22
+    filt = np.sqrt(max(level, 0.0) / filter_half)
+    x0, x1 = _axis_range(t00, t01, t02, t20, t21, t22, c22, r2, m0, filt, float(width), margin, near)
+    y0, y1 = _axis_range(t10, t11, t12, t20, t21, t22, c22, r2, m1, filt, float(height), margin, near)
+    return x0, y0, x1, y1
+
+
 @njit(parallel=True, cache=True)
 def _boxes_kernel(T, m2d, op, in_front, width, height, alpha_min, margin, filter_half, near):
     n = T.shape[0]
     boxes = np.zeros((n, 4), np.int64)
-    size = (float(width), float(height))
     for k in prange(n):
         o = float(op[k])
         if not in_front[k] or not o > alpha_min:
             continue
-        level = np.log(max(o, 1e-30) * 255.0)
-        r2 = 2.0 * level
-        t20 = float(T[k, 2, 0])
-        t21 = float(T[k, 2, 1])
-        t22 = float(T[k, 2, 2])
-        c22 = (t20 * r2) * t20 + (t21 * r2) * t21 + (t22 * -1.0) * t22
-        filt = np.sqrt(max(level, 0.0) / filter_half)
-        for axis in range(2):
-            ti0 = float(T[k, axis, 0])
-            ti1 = float(T[k, axis, 1])
-            ti2 = float(T[k, axis, 2])
-            if c22 < 0:
-                c02 = (ti0 * r2) * t20 + (ti1 * r2) * t21 + (ti2 * -1.0) * t22
-                c00 = (ti0 * r2) * ti0 + (ti1 * r2) * ti1 + (ti2 * -1.0) * ti2
-                disc = np.sqrt(max(c02 * c02 - c00 * c22, 0.0))
-                a = (c02 + disc) / c22
-                b = (c02 - disc) / c22
-                lo = min(a, b)
-                hi = max(a, b)
-            else:
-                lo, hi = _clipped_disk_range_nb(ti0, ti1, ti2, t20, t21, t22, np.sqrt(max(r2, 0.0)), near)
-            m = float(m2d[k, axis])
-            lo = min(lo, m - filt) - margin
-            hi = max(hi, m + filt) + margin
-            if lo != lo:
-                lo = -np.inf
-            if hi != hi:
-                hi = np.inf
-            first = np.ceil(min(max(lo - 0.5, -1.0), size[axis] + 1.0))
-            last = np.floor(min(max(hi - 0.5, -1.0), size[axis] + 1.0)) + 1.0
-            boxes[k, axis] = int(min(max(first, 0.0), size[axis]))
-            boxes[k, axis + 2] = int(min(max(last, 0.0), size[axis]))
+        x0, y0, x1, y1 = _box(float(T[k, 0, 0]), float(T[k, 0, 1]), float(T[k, 0, 2]), float(T[k, 1, 0]),
+                              float(T[k, 1, 1]), float(T[k, 1, 2]), float(T[k, 2, 0]), float(T[k, 2, 1]),
+                              float(T[k, 2, 2]), float(m2d[k, 0]), float(m2d[k, 1]), o, width, height, margin,
+                              filter_half, near)
+        boxes[k, 0] = x0
+        boxes[k, 1] = y0
+        boxes[k, 2] = x1
+        boxes[k, 3] = y1
     return boxes
+
+
+@njit(parallel=True, cache=True)
+def _visibility_kernel(means, quats, scales, op, K, R, t, near, near32, width, height, alpha_min, margin,
+                       filter_half, visible):
+    """``project(...).visible`` in one pass without its outputs: per Gaussian the camera point (as
+    ``_points_forward``), the rows of T (as ``_frames_forward``) and the footprint box (as
+    :func:`_boxes_kernel`), with every intermediate the projection stores rounded to the splats'
+    float32 where it rounds it, so the answer is the projection's bit for bit (tested)."""
+    n = means.shape[0]
+    k00, k01, k02, k10, k11, k12 = K[0, 0], K[0, 1], K[0, 2], K[1, 0], K[1, 1], K[1, 2]
+    for g in prange(n):
+        visible[g] = False
+        x, y, z = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
+        p0 = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
+        p1 = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
+        p2 = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+        pz = np.float32(p2)
+        o = float(op[g])
+        if not pz > near32 or not o > alpha_min:  # in_front is the float32 depth against near
+            continue
+        zs = p2 if p2 > near else 1.0
+        m0 = float(np.float32((K[0, 0] * p0 + K[0, 1] * p1 + K[0, 2] * p2) / zs))
+        m1 = float(np.float32((K[1, 0] * p0 + K[1, 1] * p1 + K[1, 2] * p2) / zs))
+        z_ = float(np.float32(zs))
+        (w_, qx, qy, qz, inv, q00, q01, q02, q10, q11, q12, q20, q21, q22, au0, au1, au2, av0, av1, av2, aw0, aw1,
+         aw2, sign) = _camera_axes_at(quats, R, g, float(np.float32(p0)), float(np.float32(p1)), float(pz))
+        su = float(scales[g, 0])
+        sv = float(scales[g, 1])
+        u0, u1, u2 = au0 * su, au1 * su, au2 * su
+        v0, v1, v2 = av0 * sv, av1 * sv, av2 * sv
+        x0, y0, x1, y1 = _box(float(np.float32(k00 * u0 + k01 * u1 + k02 * u2)),
+                              float(np.float32(k00 * v0 + k01 * v1 + k02 * v2)), float(np.float32(z_ * m0)),
+                              float(np.float32(k10 * u0 + k11 * u1 + k12 * u2)),
+                              float(np.float32(k10 * v0 + k11 * v1 + k12 * v2)), float(np.float32(z_ * m1)),
+                              float(np.float32(u2)), float(np.float32(v2)), z_, m0, m1, o, width, height, margin,
+                              filter_half, near)
+        visible[g] = x1 > x0 and y1 > y0
+
+
+def visible_mask(splats: Splats, camera: Camera, near: float = 0.01) -> Tensor:
+    """[N] bool, ``project(splats, camera, near).visible`` (the splats whose footprint touches the
+    image), without the projection's tensors: one numba pass for float32 CPU splats (the training
+    loop's visibility test for compact gradients), else :func:`project` itself."""
+    check_splats(splats)
+    tensors = (splats.means, splats.quats, splats.scales, splats.opacities)
+    if not (use_fused(*tensors) and all(t.dtype == torch.float32 for t in tensors)):
+        return project(splats, camera, near).visible
+    K, rot_cw, t_cw = camera_tensors(camera, splats.means.device, splats.means.dtype)
+    as64 = lambda a: np.ascontiguousarray(a.detach().cpu().double().numpy())  # noqa: E731
+    arr = lambda a: np.ascontiguousarray(a.detach().numpy())  # noqa: E731
+    visible = np.empty(splats.means.shape[0], np.bool_)
+    _visibility_kernel(arr(splats.means), arr(splats.quats), arr(splats.scales), arr(splats.opacities), as64(K),
+                       as64(rot_cw), as64(t_cw), float(near), np.float32(near), int(camera.width),
+                       int(camera.height), ALPHA_MIN, BOX_MARGIN, FILTER_INV_SQUARE / 2.0, visible)
+    return torch.from_numpy(visible)
 
 
 def footprint_boxes_fast(ray_t: Tensor, means2d: Tensor, opacities: Tensor, in_front: Tensor,

@@ -8,14 +8,17 @@ warm-up and then ``iterations`` timed iterations from the default schedule's den
 amortised as in a fit). The phases are measured by wrapping the functions the loop calls, so the
 loop itself is the one the pipeline runs:
 
-- ``projection``: :func:`trace3d.render.projection.project` (ray transforms, footprint boxes);
+- ``projection``: :func:`trace3d.render.projection.project` (ray transforms, footprint boxes; with
+  compact gradients both the visibility pass over all Gaussians and the seen rows' projection);
 - ``binning``: tile binning of the footprint boxes (``Binning``);
 - ``forward_kernel`` / ``backward_kernel``: the numba tile kernels;
-- ``render_glue``: the rest of the render (SH colours, packing, conversions);
+- ``render_glue``: the rest of the render (SH colours, packing, conversions; with compact gradients
+  the gather of the seen rows);
 - ``loss``: L1 + D-SSIM and the regularisers (normal consistency, depth distortion terms);
 - ``autograd_rest``: ``loss.backward()`` minus the backward kernel (projection and SH backward, loss
   backward, conversions);
-- ``optimizer``: the Adam step; ``density_control``: the strategy's hooks (amortised);
+- ``optimizer``: the Adam step (with compact gradients: and the gradients' scatter into Adam's
+  buffers); ``density_control``: the strategy's hooks (amortised);
 - ``other``: the iteration's remainder (sampling, logging, checks).
 
 Reports ms per iteration for each, ``kernel_share`` = (forward + backward kernel) / iteration and
@@ -48,16 +51,19 @@ class _Clock:
                                          "backward_kernel", "backward", "optimizer", "density_control")}
         self.cpu = dict.fromkeys(self.seconds, 0.0)  # process CPU time (all threads) in the same spans
         self.on = False
+        self.active: set[str] = set()  # a span nested in one of its own key counts once
 
     def wrap(self, key, fn):
         def inner(*args, **kwargs):
-            if not self.on:
+            if not self.on or key in self.active:
                 return fn(*args, **kwargs)
             start = time.perf_counter()
             cpu = time.process_time()
+            self.active.add(key)
             try:
                 return fn(*args, **kwargs)
             finally:
+                self.active.discard(key)
                 self.seconds[key] += time.perf_counter() - start
                 self.cpu[key] += time.process_time() - cpu
 
@@ -68,11 +74,16 @@ class _Clock:
 def _instrumented(clock: _Clock):
     """Wrap the functions the training loop calls (restored afterwards)."""
     from ..render import core, kernels
-    from . import loop, optimizer, strategy
+    from . import loop, optimizer, sparse, strategy
 
     patches = [
-        (core, "project", "projection"), (kernels, "forward_kernel", "forward_kernel"),
+        (core, "project", "projection"), (sparse, "visible_mask", "projection"),
+        (kernels, "forward_kernel", "forward_kernel"),
         (kernels, "backward_kernel", "backward_kernel"), (loop, "render_view", "render"),
+        # compact gradients: the visibility pass and the gather of the seen rows are part of the render,
+        # the gradients' scatter into Adam's buffers part of the optimizer step
+        (loop, "visible_rows", "render"), (loop, "CompactView", "render"),
+        (optimizer.GaussianOptimizer, "sparse_step", "optimizer"),
         (loop, "photometric_loss", "loss"), (loop, "depth_normal_consistency", "loss"),
         (optimizer.GaussianOptimizer, "step", "optimizer"),
         (strategy.DefaultStrategy, "after_backward", "density_control"),
@@ -215,7 +226,8 @@ def run_bench(quick: bool = False, sizes: list[tuple[int, int]] | None = None,
     # torch_threads: the process's; the fit itself runs torch with TrainParams.torch_threads
     out = {"torch_threads": torch.get_num_threads(), "fit_torch_threads": TrainParams().torch_threads,
            "numba_threads": numba.get_num_threads(),
-           "gaussians": gaussians, "quick": quick, "fused_glue": fused_enabled(), "sizes": {}}
+           "gaussians": gaussians, "quick": quick, "fused_glue": fused_enabled(),
+           "sparse_grad": TrainParams().sparse_grad, "sizes": {}}
     with tempfile.TemporaryDirectory(prefix="trace3d-bench-fit-") as tmp:
         for size in sizes:
             log.info("bench fit: %dx%d, %d Gaussians, %d iterations", size[0], size[1], gaussians, iterations)

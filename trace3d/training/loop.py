@@ -47,6 +47,7 @@ from ..scene import Camera
 from ..threads import torch_threads
 from .optimizer import GaussianOptimizer, learning_rates
 from .params import TrainParams
+from .sparse import CompactView, sparse_applies, visible_rows
 from .strategy import DefaultStrategy, Strategy
 
 log = logging.getLogger(__name__)
@@ -128,9 +129,10 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def render_view(model: GaussianModel, camera: Camera, sh_degree: int, background: torch.Tensor | None,
+def render_view(model: GaussianModel | CompactView, camera: Camera, sh_degree: int, background: torch.Tensor | None,
                 near: float = 0.01, with_distortion: bool = False):
-    """Render ``model`` (colours from SH up to ``sh_degree``) into ``camera``; the renderer's RenderOutput."""
+    """Render ``model`` (colours from SH up to ``sh_degree``) into ``camera``; the renderer's RenderOutput.
+    ``model`` may be a :class:`~trace3d.training.sparse.CompactView` (the Gaussians a view sees)."""
     from ..render import render
 
     center = torch.as_tensor(camera.center, dtype=model.means.dtype, device=model.device)
@@ -210,6 +212,9 @@ def _fit_loop(model: GaussianModel, cameras: Sequence[Camera], images: list[torc
     strategy = DefaultStrategy(generator) if strategy is None else strategy
     strategy.initialize(state, schedule)
     fixed_background = torch.tensor(params.background, dtype=torch.float32, device=device)
+    sparse = params.sparse_grad and sparse_applies(state.model)
+    trainable = {g["name"] for g in state.optimizer.param_groups}
+    view_model = None
 
     history: list[dict] = []
     densify_events: list[dict] = []
@@ -236,7 +241,12 @@ def _fit_loop(model: GaussianModel, cameras: Sequence[Camera], images: list[torc
 
         lambda_normal = params.lambda_normal if iteration > schedule["normal_from"] else 0.0
         lambda_dist = params.lambda_distortion if iteration > schedule["distortion_from"] else 0.0
-        out = render_view(state.model, camera, active_sh, background, params.near, with_distortion=lambda_dist > 0)
+        if sparse:  # compact gradients: differentiate the Gaussians the view sees only (trace3d.training.sparse)
+            rows, scales, opacities = visible_rows(state.model, camera, params.near)
+            view_model = CompactView(state.model, rows, scales, opacities, trainable)
+            out = render_view(view_model, camera, active_sh, background, params.near, with_distortion=lambda_dist > 0)
+        else:
+            out = render_view(state.model, camera, active_sh, background, params.near, with_distortion=lambda_dist > 0)
         photo, l1, s = photometric_loss(out.features, target, params.lambda_dssim)
         loss = photo
         normal_term = torch.zeros((), device=device)
@@ -257,10 +267,14 @@ def _fit_loop(model: GaussianModel, cameras: Sequence[Camera], images: list[torc
         loss.backward()
 
         with torch.no_grad():
-            event = strategy.after_backward(iteration, state, out, camera)
+            seen = view_model.dense_output(out, len(state)) if sparse else out
+            event = strategy.after_backward(iteration, state, seen, camera)
             if event:
                 densify_events.append({**event, "iteration": iteration})
-            state.step(out.visible)
+            if sparse:
+                state.sparse_step(view_model.rows, view_model.grads(), view_model.sources, seen.visible)
+            else:
+                state.step(out.visible)
             event = strategy.after_step(iteration, state)
             if event:
                 densify_events.append({**event, "iteration": iteration})

@@ -71,6 +71,7 @@ class GaussianOptimizer:
         # that streams every Gaussian's tensors, element by element, so its result does not depend
         # on the thread count (tested); the training loop sets the process's thread budget here
         self.bulk_threads = 0
+        self._grad_buffers: dict[str, torch.Tensor] = {}  # sparse_step's dense gradients (zero between steps)
 
     # --- bookkeeping ---------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -108,6 +109,38 @@ class GaussianOptimizer:
             with torch_threads(self.bulk_threads):
                 self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
+
+    @torch.no_grad()
+    def sparse_step(self, rows: torch.Tensor, grads: dict[str, torch.Tensor], sources: dict[str, torch.Tensor],
+                    visible: torch.Tensor | None = None) -> None:
+        """:meth:`step` from compact gradients (:mod:`trace3d.training.sparse`): ``grads[name]`` [R, ...]
+        is the gradient of the rows ``rows`` of the attribute that was ``sources[name]`` when the view
+        was rendered; every other row's gradient is zero. An attribute an edit has replaced since
+        (density control, an opacity reset) gets no step, as its fresh parameter gets none in
+        :meth:`step` (it has no gradient).
+
+        The gradients go into persistent dense buffers that are zero outside a step (only the rows
+        are written and cleared), so the dense Adam step sees exactly the dense path's gradients.
+        """
+        from .sparse import clear_rows, scatter_rows
+
+        touched = []
+        for group in self.optimizer.param_groups:
+            name, param = group["name"], group["params"][0]
+            grad = grads.get(name)
+            if grad is None or sources.get(name) is not param:
+                continue
+            buffer = self._grad_buffers.get(name)
+            if buffer is None or buffer.shape != param.shape or buffer.dtype != param.dtype or buffer.device != param.device:
+                buffer = torch.zeros_like(param, memory_format=torch.contiguous_format)
+                self._grad_buffers[name] = buffer
+            param.grad = buffer
+            touched.append((buffer, grad))
+        scatter_rows([b for b, _ in touched], rows, [g for _, g in touched])
+        try:
+            self.step(visible)
+        finally:
+            clear_rows([b for b, _ in touched], rows)
 
     @torch.no_grad()
     def visible_step(self, rows: torch.Tensor) -> None:

@@ -94,6 +94,10 @@ class TrainParams:
     # parameters and moments unchanged instead of drifting on their momentum; the bias corrections
     # count every step. Off by default: it changes the fit (docs/performance.md has the comparison).
     visible_adam: bool = False
+    # Compact gradients on the CPU renderer: the backward works on the Gaussians the view sees only
+    # and Adam gets them through dense gradient buffers (trace3d.training.sparse); the same update
+    # bit for bit, faster. Off: the dense autograd path over all N (the reference for the tests).
+    sparse_grad: bool = True
     # torch intra-op threads during training (0 = leave torch's setting). The heavy work is in the
     # rasterizer's numba kernels, which run their own threads; torch's OpenMP threads spin-waiting
     # beside them made an iteration 15x slower on a busy 2-core machine (5.0 vs 0.33 s at 80k splats).
