@@ -328,3 +328,44 @@ def test_visible_mask_is_the_projections_visible_bit_for_bit():
     # the float64 path is the projection itself
     splats64 = Splats(*(t.double() for t in splats))
     assert torch.equal(visible_mask(splats64, cam, 0.01), project(splats64, cam, 0.01).visible)
+
+
+def test_background_blended_in_the_rasterizer_is_torchs_blend_bit_for_bit():
+    """A fixed colour background is blended inside the rasterizer; a background that needs a
+    gradient takes the torch line. Both give the same images and the same gradients of every input,
+    with the alpha and features both reaching the loss (two gradients into the transmittance)."""
+    from trace3d.gaussians import GaussianModel
+    from trace3d.render import render
+
+    model, cam = _visible_and_hidden_model(seed=4)
+    center = torch.as_tensor(cam.center, dtype=torch.float32)
+    up = torch.randn(cam.height, cam.width, 3, generator=torch.Generator().manual_seed(1))
+    results = []
+    for differentiable_background in (False, True):
+        params = [t.detach().clone().requires_grad_() for t in (model.means, model.quats, model.log_scales,
+                                                                  model.opacity_logits, model.sh_dc, model.sh_rest)]
+        m = GaussianModel(means=params[0], quats=params[1], log_scales=params[2], opacity_logits=params[3],
+                          sh_dc=params[4], sh_rest=params[5])
+        background = torch.tensor([0.3, 0.55, 0.9]).requires_grad_(differentiable_background)
+        out = render(m.splats(), cam, lambda rows, m=m: m.colors(center, 3, rows), background)
+        loss = (out.features * up).sum() + out.alpha.square().sum() + out.normal.sum()
+        results.append((out.features.detach(), torch.autograd.grad(loss, params)))
+    assert torch.equal(results[0][0], results[1][0])
+    assert bool((results[0][0] != 0).any())
+    for a, b in zip(results[0][1], results[1][1]):
+        assert torch.equal(a, b)
+    # 16 channels: blended inside only when the background is zero (as lifting renders)
+    feats = torch.rand(len(model), 16, generator=torch.Generator().manual_seed(2))
+    up16 = torch.randn(cam.height, cam.width, 16, generator=torch.Generator().manual_seed(3))
+    for value in (0.0, 0.4):
+        results = []
+        for differentiable_background in (False, True):
+            f = feats.clone().requires_grad_()
+            means = model.means.detach().clone().requires_grad_()
+            background = torch.full((16,), value).requires_grad_(differentiable_background)
+            out = render(model.splats()._replace(means=means), cam, f, background)
+            loss = (out.features * up16).sum() + out.alpha.square().sum()
+            results.append((out.features.detach(), torch.autograd.grad(loss, (f, means))))
+        assert torch.equal(results[0][0], results[1][0])
+        for a, b in zip(results[0][1], results[1][1]):
+            assert torch.equal(a, b)

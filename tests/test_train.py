@@ -954,3 +954,31 @@ def test_compact_gradients_give_the_dense_fit_bit_for_bit(overrides, monkeypatch
     assert [{k: v for k, v in r.items() if k != "seconds"} for r in dense.history] == \
         [{k: v for k, v in r.items() if k != "seconds"} for r in compact.history]
     assert dense.densify_events == compact.densify_events
+
+
+def test_surface_depth_kernel_is_the_torch_operations_bit_for_bit():
+    """The fused surface depth against the loop's former torch lines: values and the gradients of
+    depth, alpha and median, exactly, with alpha at, below and just above the 1e-6 cut-off."""
+    from trace3d.loss_kernels import surface_depth, surface_depth_torch
+
+    g = torch.Generator().manual_seed(3)
+    h, w = 37, 53
+    alpha = torch.rand(h, w, generator=g)
+    alpha[:5] = 0.0
+    alpha[5:8] = 1e-6
+    alpha[8:10] = torch.tensor(1e-6).nextafter(torch.tensor(1.0))
+    alpha[10:12] = 3e-7
+    depth = torch.rand(h, w, generator=g) * 4 * alpha
+    median = torch.rand(h, w, generator=g) * 4
+    up = torch.randn(h, w, generator=g)
+    for ratio in (0.0, 0.3):
+        values, grads = [], []
+        for fn in (surface_depth, surface_depth_torch):
+            leaves = [t.clone().requires_grad_() for t in (depth, alpha, median)]
+            out = fn(*leaves, ratio)
+            values.append(out.detach())
+            grads.append(torch.autograd.grad((out * up).sum(), leaves))
+        assert torch.equal(values[0], values[1])
+        for a, b in zip(*grads):
+            assert torch.equal(a, b)
+        assert bool((values[0][:5] == ratio * median[:5]).all())

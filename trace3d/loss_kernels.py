@@ -406,3 +406,86 @@ def fused_normal_consistency(rendered_normal: torch.Tensor, depth: torch.Tensor,
                          f"{tuple(rendered_normal.shape)}, {tuple(depth.shape)}, {tuple(alpha.shape)}")
     Kn = np.ascontiguousarray(np.asarray(K.detach().cpu() if torch.is_tensor(K) else K, dtype=np.float64))
     return _FusedNormalConsistency.apply(rendered_normal, depth, alpha.detach(), Kn)
+
+
+# ----------------------------------------------------------------------------------------------
+# The surface depth the normal-consistency term differentiates
+# ----------------------------------------------------------------------------------------------
+#
+# The training loop's eight full-image torch operations (and their eight backward nodes)
+#   expected = where(alpha > 1e-6, depth / alpha.clamp_min(1e-6), 0)
+#   surface  = expected * (1 - r) + median * r
+# as one float32 pass each way.  Every operation is the torch one, in float32, in torch's order, and
+# the backward is torch's formulas (mul: grad * scalar; where: where(c, grad, 0); div:
+# grad / other and -grad * ((self / other) / other); clamp_min: where(self >= min, grad, 0)), so the
+# values and gradients are torch's bit for bit (tested).
+
+_ALPHA_EPS = 1e-6
+
+
+@njit(parallel=True, cache=True)
+def _surface_forward(depth, alpha, median, eps, keep, ratio, out):
+    h, w = depth.shape
+    zero = np.float32(0.0)
+    for i in prange(h):
+        for j in range(w):
+            a = alpha[i, j]
+            e = depth[i, j] / max(a, eps) if a > eps else zero
+            out[i, j] = e * keep + median[i, j] * ratio
+
+
+@njit(parallel=True, cache=True)
+def _surface_backward(depth, alpha, grad, eps, keep, ratio, g_depth, g_alpha, g_median):
+    h, w = depth.shape
+    zero = np.float32(0.0)
+    for i in prange(h):
+        for j in range(w):
+            g = grad[i, j]
+            a = alpha[i, j]
+            c = max(a, eps)
+            q = g * keep if a > eps else zero
+            d = depth[i, j]
+            g_depth[i, j] = q / c
+            g_c = -q * ((d / c) / c)
+            g_alpha[i, j] = g_c if a >= eps else zero
+            g_median[i, j] = g * ratio
+
+
+class _SurfaceDepth(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, depth, alpha, median, ratio):
+        f32 = np.float32
+        d, a, m = (np.ascontiguousarray(t.detach().numpy()) for t in (depth, alpha, median))
+        out = np.empty_like(d)
+        consts = (f32(_ALPHA_EPS), f32(1.0 - ratio), f32(ratio))
+        _surface_forward(d, a, m, *consts, out)
+        ctx.saved = (d, a, consts)
+        return torch.from_numpy(out)
+
+    @staticmethod
+    def backward(ctx, grad):
+        d, a, consts = ctx.saved
+        outs = (np.empty_like(d), np.empty_like(d), np.empty_like(d))
+        _surface_backward(d, a, np.ascontiguousarray(grad.detach().numpy().astype(np.float32, copy=False)), *consts,
+                          *outs)
+        return tuple(torch.from_numpy(o) for o in outs) + (None,)
+
+
+def surface_depth_torch(depth: torch.Tensor, alpha: torch.Tensor, median: torch.Tensor, ratio: float) -> torch.Tensor:
+    """The twin of :func:`surface_depth` (the torch operations the training loop ran)."""
+    covered = alpha > _ALPHA_EPS
+    expected = torch.where(covered, depth / alpha.clamp_min(_ALPHA_EPS), torch.zeros_like(depth))
+    return expected * (1.0 - ratio) + median * ratio
+
+
+def surface_depth(depth: torch.Tensor, alpha: torch.Tensor, median: torch.Tensor, ratio: float) -> torch.Tensor:
+    """The 2DGS surface depth ``(1 - r) D / alpha + r D_median`` ([H, W]; 0 where alpha <= 1e-6) of a
+    render, differentiable w.r.t. all three maps: one numba pass each way for float32 CPU maps, bit
+    for bit :func:`surface_depth_torch` (the twin elsewhere)."""
+    from .render.glue_kernels import use_fused
+
+    maps = (depth, alpha, median)
+    if not (use_fused(*maps) and all(t.dtype == torch.float32 and t.shape == depth.shape for t in maps)
+            and depth.ndim == 2):
+        return surface_depth_torch(depth, alpha, median, ratio)
+    return _SurfaceDepth.apply(depth, alpha, median, float(ratio))

@@ -849,9 +849,50 @@ def sum_chunks(grads):
     return g_geom, g_vals
 
 
+@njit(parallel=True, cache=True)
+def split_channels(acc, split, final_t, background, fold):
+    """[H, W, K] -> its channels [:split] and [split:] as two C-contiguous arrays (one parallel pass;
+    numpy's strided copy of a few channels is several times slower).  With ``fold`` the first part is
+    ``acc[..., :split] + final_t * background`` (the background blended in, as torch would add it)."""
+    h, w, k = acc.shape
+    head = np.empty((h, w, split), acc.dtype)
+    tail = np.empty((h, w, k - split), acc.dtype)
+    for i in prange(h):
+        for j in range(w):
+            t = final_t[i, j]
+            for c in range(split):
+                head[i, j, c] = acc[i, j, c] + t * background[c] if fold else acc[i, j, c]
+            for c in range(split, k):
+                tail[i, j, c - split] = acc[i, j, c]
+    return head, tail
+
+
+@njit(parallel=True, cache=True)
+def join_channels(head, tail, v_final_t, background, fold):
+    """The inverse of :func:`split_channels` for the gradients: [H, W, S] and [H, W, K - S] ->
+    [H, W, K]; with ``fold`` also adds the blended background's share to ``v_final_t`` in place,
+    ``((g_0 b_0 + g_1 b_1) + g_2 b_2)`` in torch's order of its broadcast sum."""
+    h, w, split = head.shape
+    k = split + tail.shape[2]
+    acc = np.empty((h, w, k), head.dtype)
+    for i in prange(h):
+        for j in range(w):
+            if fold:
+                share = head[i, j, 0] * background[0]
+                for c in range(1, split):
+                    share += head[i, j, c] * background[c]
+                v_final_t[i, j] += share
+            for c in range(split):
+                acc[i, j, c] = head[i, j, c]
+            for c in range(split, k):
+                acc[i, j, c] = tail[i, j, c - split]
+    return acc
+
+
 class _Rasterize(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, geom15: Tensor, vals: Tensor, binning: Binning, near: float, split: int):
+    def forward(ctx, geom15: Tensor, vals: Tensor, binning: Binning, near: float, split: int,
+                background: Tensor | None):
         geom = _geom_array(geom15)
         vals_np = _f32(vals)
         egeom = binning.entry_geometry(geom)
@@ -867,7 +908,11 @@ class _Rasterize(torch.autograd.Function):
         # the blended values as two outputs, columns [:split] and [split:] (features and normals), so
         # that the backward gets their gradients without two zero-filled slice gradients and their sum
         ctx.split = split
-        parts = (np.ascontiguousarray(acc[..., :split]), np.ascontiguousarray(acc[..., split:]))
+        # background: blended into the first part here (None: the caller blends it)
+        ctx.background = (np.zeros(split, np.float32) if background is None
+                          else np.ascontiguousarray(background.detach().numpy()))
+        ctx.fold = background is not None
+        parts = split_channels(acc, split, final_t, ctx.background, ctx.fold)
         outs = [torch.from_numpy(a).to(device=dev, dtype=dt) for a in parts + (acc_z, acc_z2, final_t, median_z)]
         ref = torch.from_numpy(depth_ref).to(device=dev, dtype=dt)
         ctx.mark_non_differentiable(ref)
@@ -884,20 +929,20 @@ class _Rasterize(torch.autograd.Function):
                 return np.zeros(shape, np.float32)
             return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
 
-        v_acc = np.empty((h, w, k), np.float32)
-        v_acc[..., :ctx.split] = arr(v_head, (h, w, ctx.split))
-        v_acc[..., ctx.split:] = arr(v_tail, (h, w, k - ctx.split))
+        v_t = np.array(arr(v_final_t, (h, w)))  # a copy: the background's share is added in place
+        v_acc = join_channels(arr(v_head, (h, w, ctx.split)), arr(v_tail, (h, w, k - ctx.split)), v_t,
+                              ctx.background, ctx.fold)
 
         n_chunks = max(1, numba.get_num_threads())
         grads = backward_kernel(egeom, b.entry_boxes, b.lists, vals_np, b.offsets, b.width, b.height, b.tiles_x,
                                 float(ctx.near), n_chunks, final_t, depth_ref, last, median_at,
                                 v_acc, arr(v_z, (h, w)), arr(v_z2, (h, w)),
-                                arr(v_final_t, (h, w)), arr(v_median, (h, w)))
+                                v_t, arr(v_median, (h, w)))
         g_geom_np, g_vals_np = sum_chunks(grads)
         gdt, vdt, dev = ctx.in_dtype
         g_geom = torch.from_numpy(g_geom_np).to(device=dev, dtype=gdt)
         g_vals = torch.from_numpy(g_vals_np).to(device=dev, dtype=vdt)
-        return g_geom, g_vals, None, None, None
+        return g_geom, g_vals, None, None, None, None
 
 
 def rasterize(proj: Projected, features: Tensor, width: int, height: int, background: Tensor,
@@ -914,10 +959,15 @@ def rasterize(proj: Projected, features: Tensor, width: int, height: int, backgr
         binning = Binning(proj, width, height)
     c = features.shape[1]
     vals = torch.cat([features, proj.normals.to(features.dtype)], dim=1)
-    feats, normal, acc_z, acc_z2, final_t, median_z, depth_ref = _Rasterize.apply(pack_geometry(proj), vals, binning,
-                                                                                  near, c)
+    # a fixed background is blended inside: the same float32 operations as the torch line below, in
+    # its order (tested) for three channels; for other channel counts only a zero background (then
+    # every term is exact: the order cannot matter). A background to differentiate takes the torch line.
+    fold = (vals.dtype == torch.float32 and background.dtype == torch.float32 and background.device.type == "cpu"
+            and not background.requires_grad and (c == 3 or not bool(background.any())))
+    feats, normal, acc_z, acc_z2, final_t, median_z, depth_ref = _Rasterize.apply(
+        pack_geometry(proj), vals, binning, near, c, background.contiguous() if fold else None)
     return {
-        "features": feats + final_t[..., None] * background,
+        "features": feats if fold else feats + final_t[..., None] * background,
         "alpha": 1.0 - final_t,
         "depth": acc_z,
         "depth2": acc_z2,

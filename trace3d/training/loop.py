@@ -42,6 +42,7 @@ from tqdm import tqdm
 
 from ..errors import ConfigError, Trace3DError
 from ..gaussians import GaussianModel
+from ..loss_kernels import surface_depth
 from ..losses import depth_normal_consistency, photometric_loss, psnr, ssim
 from ..scene import Camera
 from ..threads import torch_threads
@@ -252,10 +253,9 @@ def _fit_loop(model: GaussianModel, cameras: Sequence[Camera], images: list[torc
         normal_term = torch.zeros((), device=device)
         dist_term = torch.zeros((), device=device)
         if lambda_normal > 0:
-            covered = out.alpha > 1e-6
-            expected = torch.where(covered, out.depth / out.alpha.clamp_min(1e-6), torch.zeros_like(out.depth))
-            surface_depth = expected * (1.0 - params.depth_ratio) + out.median_depth * params.depth_ratio
-            normal_term = depth_normal_consistency(out.normal, surface_depth, out.alpha, camera.K)
+            # (1 - r) expected depth + r median depth, 0 where nothing was rendered
+            surface = surface_depth(out.depth, out.alpha, out.median_depth, params.depth_ratio)
+            normal_term = depth_normal_consistency(out.normal, surface, out.alpha, camera.K)
             loss = loss + lambda_normal * normal_term
         if lambda_dist > 0:
             dist_term = out.distortion.mean()
