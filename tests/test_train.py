@@ -221,6 +221,29 @@ class TestSSIM:
         small.get(a2, y2, _window(np.float32))
         assert list(small.entries) == [id(a2)] and small.bytes <= small.max_bytes
 
+    @pytest.mark.parametrize("size", [(37, 52, 3), (6, 9, 3), (120, 160, 3)])
+    def test_fused_photometric_terms_equal_the_torch_composition_bit_for_bit(self, size):
+        """photometric_terms (the training loop's call) against photometric_loss + psnr, the path the
+        loop took before: loss, L1, SSIM, PSNR and the image gradient, exactly; pixels outside [0, 1]
+        (the PSNR clamps) and equal to the target (sgn 0) included; also with the L1 or the SSIM
+        weight alone."""
+        from trace3d.losses import photometric_terms
+
+        g = torch.Generator().manual_seed(size[0])
+        target = torch.rand(size, generator=g)
+        image = (target * 0.7 + 0.4 * torch.rand(size, generator=g) - 0.1)
+        image[0, :3] = target[0, :3]
+        for lam in (0.2, 0.0, 1.0):
+            x1, x2 = image.clone().requires_grad_(), image.clone().requires_grad_()
+            loss, l1, s, p = photometric_terms(x1, target, lam)
+            loss_t, l1_t, s_t = photometric_loss(x2, target, lam)
+            p_t = psnr(x2.detach().clamp(0, 1), target, exact=False)
+            assert torch.equal(loss, loss_t) and torch.equal(l1, l1_t) and torch.equal(s, s_t) and p == p_t
+            (g1,) = torch.autograd.grad(loss * 1.7, x1)
+            (g2,) = torch.autograd.grad(loss_t * 1.7, x2)
+            assert torch.equal(g1, g2), lam
+            assert bool((g1 != 0).any())
+
     def test_photometric_loss_weights(self):
         a = torch.zeros(16, 16, 3)
         b = torch.full((16, 16, 3), 0.5)
@@ -940,13 +963,26 @@ def test_compact_gradients_give_the_dense_fit_bit_for_bit(overrides, monkeypatch
     rows, _, _ = sparse.visible_rows(model, cameras[0], 0.01)
     assert 0 < rows.numel() < len(model)  # the views see part of the plane
     params = dict(iterations=90, densify_from=20, densify_until=80, densify_interval=10, opacity_reset_interval=40,
-                  normal_from=30, sh_degree_interval=30, **overrides)
+                  normal_from=30, sh_degree_interval=30, log_interval=1, **overrides)
     views = []
     monkeypatch.setattr(loop, "CompactView", lambda *a: views.append(1) or sparse.CompactView(*a))
-    dense = fit(model, cameras, images, tiny_params(sparse_grad=False, **params), progress=False)
+    states = {False: [], True: []}
+
+    def record(kind):
+        def callback(iteration, state):  # every iteration: density statistics and the means' Adam moments
+            moments = state.optimizer.state[state.model.means]
+            states[kind].append([t.clone() for t in state.statistics.values()]
+                                + [moments["exp_avg"].clone(), moments["exp_avg_sq"].clone()])
+        return callback
+
+    dense = fit(model, cameras, images, tiny_params(sparse_grad=False, **params), progress=False,
+                callback=record(False))
     assert not views
-    compact = fit(model, cameras, images, tiny_params(**params), progress=False)
+    compact = fit(model, cameras, images, tiny_params(**params), progress=False, callback=record(True))
     assert len(views) == 90
+    assert len(states[True]) == 90
+    for a, b in zip(states[False], states[True]):
+        assert all(torch.equal(x, y) for x, y in zip(a, b))
     assert any(e["split"] + e["cloned"] > 0 for e in compact.densify_events)
     assert any(e.get("pruned", 0) > 0 for e in compact.densify_events)
     for name in GaussianModel.PARAM_NAMES:

@@ -230,6 +230,108 @@ class _FusedSSIM(torch.autograd.Function):
         return torch.from_numpy(grad), None
 
 
+# ----------------------------------------------------------------------------------------------
+# L1 + SSIM (+ the running PSNR's error) in one function
+# ----------------------------------------------------------------------------------------------
+#
+# The training loop's L1 term, its SSIM and its logged PSNR all read the same image pair. Here the
+# element-wise maps come from one numba pass (|x - y|, and (clamp(x, 0, 1) - y)^2 for the PSNR) and
+# their means are torch's means of those same maps, so every value equals the torch composition bit
+# for bit; the backward adds the L1 gradient (g / n) sgn(x - y) -- torch's MeanBackward and
+# AbsBackward formulas -- to the SSIM gradient in the same pass that finishes the SSIM gradient,
+# instead of four full-image autograd nodes and the sum of two image gradients.
+
+
+@njit(parallel=True, cache=True)
+def _error_maps(x, y, absdiff, sqerr):
+    h, w, c = x.shape
+    zero = x.dtype.type(0.0)
+    one = x.dtype.type(1.0)
+    for i in prange(h):
+        for j in range(w):
+            for ch in range(c):
+                a = x[i, j, ch]
+                b = y[i, j, ch]
+                absdiff[i, j, ch] = abs(a - b)
+                e = min(max(a, zero), one) - b
+                sqerr[i, j, ch] = e * e
+
+
+@njit(parallel=True, cache=True)
+def _photometric_grad(x, y, blurred_partials, scale, l1_scale, want_ssim, out):
+    """The SSIM gradient (as :func:`_ssim_input_grad`, when ``want_ssim``) plus the L1 gradient
+    ``l1_scale * sgn(x - y)`` into out [H, W, C]."""
+    h, w, c = x.shape
+    uw = np.uint64(w)
+    zero = x.dtype.type(0.0)
+    for i in prange(h):
+        for j in range(uw):
+            for ch in range(c):
+                d = x[i, j, ch] - y[i, j, ch]
+                sgn = x.dtype.type(1.0) if d > zero else (x.dtype.type(-1.0) if d < zero else zero)
+                g1 = l1_scale * sgn
+                if want_ssim:
+                    gs = scale * (blurred_partials[ch, i, j] + (x[i, j, ch] + x[i, j, ch]) * blurred_partials[c + ch, i, j]
+                                  + y[i, j, ch] * blurred_partials[2 * c + ch, i, j])
+                    out[i, j, ch] = gs + g1
+                else:
+                    out[i, j, ch] = g1
+
+
+class _FusedPhotometric(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, image, target):
+        x = np.ascontiguousarray(image.detach().numpy())
+        y = np.ascontiguousarray(target.detach().numpy())
+        absdiff, sqerr = np.empty_like(x), np.empty_like(x)
+        _error_maps(x, y, absdiff, sqerr)
+        g = _window(np.float32)
+        ystats = _target_cache.get(target, y, g)
+        s_map, partials = _ssim_terms(x, y, ystats, g, np.float32(SSIM_C1), np.float32(SSIM_C2), np.float32(2.0),
+                                      ctx.needs_input_grad[0])
+        ctx.saved = (x, y, g, partials)
+        l1 = torch.from_numpy(absdiff).mean()
+        mse = torch.from_numpy(sqerr).mean()
+        ctx.mark_non_differentiable(mse)
+        return l1, torch.tensor(float(s_map.astype(np.float64).mean()), dtype=image.dtype), mse
+
+    @staticmethod
+    def backward(ctx, g_l1, g_s, g_mse):
+        x, y, g, partials = ctx.saved
+        if not ctx.needs_input_grad[0]:
+            return None, None
+        want_ssim = g_s is not None
+        if want_ssim:
+            blurred = np.empty_like(partials)
+            _blur(partials, g, np.empty_like(partials), blurred)
+            scale = x.dtype.type(float(g_s) / x.size)
+        else:
+            blurred, scale = partials, x.dtype.type(0.0)
+        # torch: MeanBackward g.expand() / numel, then AbsBackward grad * sgn(x - y), in float32
+        l1_scale = (np.float32(0.0) if g_l1 is None
+                    else np.float32(g_l1.detach().to(torch.float32).numpy()) / np.float32(x.size))
+        grad = np.empty_like(x)
+        _photometric_grad(x, y, blurred, scale, l1_scale, want_ssim, grad)
+        return torch.from_numpy(grad), None
+
+
+def fused_photometric_applies(image: torch.Tensor, target: torch.Tensor) -> bool:
+    """Whether :func:`fused_photometric` handles these inputs: float32 [H, W, C] CPU pairs of one
+    shape, the target without gradient, the fused kernels switched on."""
+    return image.dtype == torch.float32 and fused_ssim_applies(image, target)
+
+
+def fused_photometric(image: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(mean |x - y|, SSIM(x, y), mean (clamp(x, 0, 1) - y)^2)`` of ``image`` x against ``target``
+    y, the first two differentiable w.r.t. the image: the values of ``l1_loss``, :func:`fused_ssim`
+    and the PSNR's error, and the gradient of any combination of the first two, bit for bit (tested)."""
+    if not fused_photometric_applies(image, target):
+        raise ValueError(f"fused_photometric: needs [H, W, C] CPU float32 images of one shape and a target "
+                         f"without gradient, got {tuple(image.shape)} {image.dtype} and {tuple(target.shape)} "
+                         f"{target.dtype}")
+    return _FusedPhotometric.apply(image, target)
+
+
 def fused_ssim_applies(image: torch.Tensor, target: torch.Tensor) -> bool:
     """Whether :func:`fused_ssim` handles these inputs: [H, W, C] CPU float32/float64 pairs of one
     shape, the target without gradient, the fused kernels switched on."""

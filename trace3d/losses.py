@@ -10,6 +10,8 @@ Images are ``[H, W, C]`` tensors (channels last, as the renderer returns them) w
 - :func:`normal_consistency_loss`: the 2DGS regulariser ``mean(1 - <n_rendered, alpha * N_depth>)``;
   :func:`depth_normal_consistency` takes the depth map itself (fused numba kernel on the CPU, the
   torch composition ``depth_to_normal`` + :func:`normal_consistency_loss` as its twin elsewhere).
+- :func:`photometric_terms`: the loss, its terms and the running PSNR of the training loop (one fused
+  numba pass on the CPU, the same values and gradients).
 - :func:`psnr`.
 """
 
@@ -22,8 +24,8 @@ import torch
 import torch.nn.functional as F
 
 from .geometry import depth_to_normal, depth_to_points  # noqa: F401  (their home is trace3d.geometry; kept importable here)
-from .loss_kernels import (fused_normal_consistency, fused_normal_consistency_applies, fused_ssim,
-                           fused_ssim_applies)
+from .loss_kernels import (fused_normal_consistency, fused_normal_consistency_applies, fused_photometric,
+                           fused_photometric_applies, fused_ssim, fused_ssim_applies)
 
 SSIM_C1 = 0.01**2
 SSIM_C2 = 0.03**2
@@ -123,6 +125,25 @@ def photometric_loss(
     l1 = l1_loss(image, target)
     s = fused_ssim(image, target) if fused_ssim_applies(image, target) else ssim(image, target)
     return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - s), l1, s
+
+
+def photometric_terms(image: torch.Tensor, target: torch.Tensor, lambda_dssim: float = 0.2
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, float]:
+    """:func:`photometric_loss` and the running PSNR of the training loop in one call.
+
+    Returns:
+        (loss, l1, ssim, psnr): the first three as :func:`photometric_loss` gives them,
+        psnr = ``psnr(image.detach().clamp(0, 1), target, exact=False)``; on the CPU from the fused
+        numba pass (:func:`trace3d.loss_kernels.fused_photometric`, the same values and gradients bit
+        for bit), else from those functions.
+    """
+    if fused_photometric_applies(image, target):
+        l1, s, mse = fused_photometric(image, target)
+        mse = float(mse)
+        return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - s), l1, s, (math.inf if mse <= 0.0
+                                                                            else -10.0 * math.log10(mse))
+    loss, l1, s = photometric_loss(image, target, lambda_dssim)
+    return loss, l1, s, psnr(image.detach().clamp(0, 1), target, exact=False)
 
 
 def psnr(image: torch.Tensor, target: torch.Tensor, exact: bool = True) -> float:

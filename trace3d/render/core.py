@@ -56,6 +56,9 @@ class RenderOutput:
             positional gradient used by 3DGS/2DGS densification (None when nothing needed grad).
         visible: [N] bool, splats whose footprint touched the image.
         radii: [N] int32, half of the larger side of the footprint box in pixels (0 when culled).
+        rows: None (``render`` itself); set by the training loop's compact gradients
+            (:mod:`trace3d.training.sparse`) to the model rows [N] of the rendered splats, so that
+            density control can file their statistics.
     """
 
     features: Tensor
@@ -67,6 +70,7 @@ class RenderOutput:
     means2d: Tensor
     visible: Tensor
     radii: Tensor
+    rows: Optional[Tensor] = None
 
 
 def _check_features(features: Tensor, n: int, what: str) -> None:

@@ -84,7 +84,7 @@ def _instrumented(clock: _Clock):
         # the gradients' scatter into Adam's buffers part of the optimizer step
         (loop, "visible_rows", "render"), (loop, "CompactView", "render"),
         (optimizer.GaussianOptimizer, "sparse_step", "optimizer"),
-        (loop, "photometric_loss", "loss"), (loop, "depth_normal_consistency", "loss"),
+        (loop, "photometric_terms", "loss"), (loop, "depth_normal_consistency", "loss"),
         (optimizer.GaussianOptimizer, "step", "optimizer"),
         (strategy.DefaultStrategy, "after_backward", "density_control"),
         (strategy.DefaultStrategy, "after_step", "density_control"),

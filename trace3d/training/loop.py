@@ -29,6 +29,7 @@ Divergence (a non-finite loss, gradient or parameter) stops training with a
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import sys
@@ -43,7 +44,7 @@ from tqdm import tqdm
 from ..errors import ConfigError, Trace3DError
 from ..gaussians import GaussianModel
 from ..loss_kernels import surface_depth
-from ..losses import depth_normal_consistency, photometric_loss, psnr, ssim
+from ..losses import depth_normal_consistency, photometric_terms, psnr, ssim
 from ..scene import Camera
 from ..threads import torch_threads
 from .optimizer import GaussianOptimizer, learning_rates
@@ -248,7 +249,7 @@ def _fit_loop(model: GaussianModel, cameras: Sequence[Camera], images: list[torc
             out = render_view(view_model, camera, active_sh, background, params.near, with_distortion=lambda_dist > 0)
         else:
             out = render_view(state.model, camera, active_sh, background, params.near, with_distortion=lambda_dist > 0)
-        photo, l1, s = photometric_loss(out.features, target, params.lambda_dssim)
+        photo, l1, s, view_psnr = photometric_terms(out.features, target, params.lambda_dssim)
         loss = photo
         normal_term = torch.zeros((), device=device)
         dist_term = torch.zeros((), device=device)
@@ -267,12 +268,13 @@ def _fit_loop(model: GaussianModel, cameras: Sequence[Camera], images: list[torc
         loss.backward()
 
         with torch.no_grad():
-            seen = view_model.dense_output(out, len(state)) if sparse else out
+            # with compact gradients the render's per-splat outputs are per row of view_model.rows
+            seen = dataclasses.replace(out, rows=view_model.rows) if sparse else out
             event = strategy.after_backward(iteration, state, seen, camera)
             if event:
                 densify_events.append({**event, "iteration": iteration})
             if sparse:
-                state.sparse_step(view_model.rows, view_model.grads(), view_model.sources, seen.visible)
+                state.sparse_step(view_model.rows, view_model.grads(), view_model.sources, out.visible)
             else:
                 state.step(out.visible)
             event = strategy.after_step(iteration, state)
@@ -287,7 +289,7 @@ def _fit_loop(model: GaussianModel, cameras: Sequence[Camera], images: list[torc
         sums_count += 1
         for key, value in (("loss", loss), ("l1", l1), ("ssim", s), ("normal", normal_term), ("distortion", dist_term)):
             sums[key] += float(value.detach())
-        sums["psnr"] += psnr(out.features.detach().clamp(0, 1), target, exact=False)
+        sums["psnr"] += view_psnr
         if iteration % params.log_interval == 0 or iteration == iterations:
             row = {"iteration": iteration, **{k: v / sums_count for k, v in sums.items()},
                    "gaussians": len(state), "sh_degree": active_sh, "seconds": time.perf_counter() - start}

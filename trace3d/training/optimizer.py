@@ -117,7 +117,8 @@ class GaussianOptimizer:
         is the gradient of the rows ``rows`` of the attribute that was ``sources[name]`` when the view
         was rendered; every other row's gradient is zero. An attribute an edit has replaced since
         (density control, an opacity reset) gets no step, as its fresh parameter gets none in
-        :meth:`step` (it has no gradient).
+        :meth:`step` (it has no gradient). ``visible`` [R] bool: which of the rows the view rendered
+        (``params.visible_adam`` updates those only).
 
         The gradients go into persistent dense buffers that are zero outside a step (only the rows
         are written and cleared), so the dense Adam step sees exactly the dense path's gradients.
@@ -138,7 +139,11 @@ class GaussianOptimizer:
             touched.append((buffer, grad))
         scatter_rows([b for b, _ in touched], rows, [g for _, g in touched])
         try:
-            self.step(visible)
+            if self.params.visible_adam:
+                self.visible_step(rows if visible is None else rows[visible])
+                self.optimizer.zero_grad(set_to_none=True)
+            else:
+                self.step()
         finally:
             clear_rows([b for b, _ in touched], rows)
 

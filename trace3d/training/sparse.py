@@ -207,15 +207,3 @@ class CompactView:
     def grads(self) -> dict[str, torch.Tensor]:
         """The compact gradient [R, ...] of every trainable attribute that received one."""
         return {name: leaf.grad for name, leaf in self.leaves.items() if leaf.requires_grad and leaf.grad is not None}
-
-    def dense_output(self, out, n: int):
-        """``out`` (the render of the compact view) as the render of all ``n`` Gaussians would give it to
-        density control: ``means2d`` [n, 2] zeros with the compact screen-space gradient scattered
-        into ``.grad``, ``visible`` [n] and ``radii`` [n] (zero for the rows not seen)."""
-        rows = self.rows
-        means2d = torch.zeros((n, 2), dtype=out.means2d.dtype, device=out.means2d.device)
-        if out.means2d.grad is not None:
-            means2d.grad = torch.zeros_like(means2d).index_copy_(0, rows, out.means2d.grad)
-        visible = torch.zeros(n, dtype=torch.bool, device=out.visible.device).index_copy_(0, rows, out.visible)
-        radii = torch.zeros(n, dtype=out.radii.dtype, device=out.radii.device).index_copy_(0, rows, out.radii)
-        return dataclasses.replace(out, means2d=means2d, visible=visible, radii=radii)

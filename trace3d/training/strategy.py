@@ -99,7 +99,7 @@ class DefaultStrategy(Strategy):
         event = None
         grad2d = out.means2d.grad if out.means2d.grad is not None else torch.zeros_like(out.means2d)
         radii = out.radii if getattr(out, "radii", None) is not None else screen_radii(state.model, camera)
-        add_stats(state, grad2d, out.visible, radii, camera.width, camera.height)
+        add_stats(state, grad2d, out.visible, radii, camera.width, camera.height, getattr(out, "rows", None))
         if iteration > schedule["densify_from"] and iteration % schedule["densify_interval"] == 0:
             with torch_threads(state.bulk_threads):  # the same result with any thread count (tested)
                 event = densify_and_prune(state, iteration > schedule["opacity_reset_interval"], self.generator,
@@ -122,7 +122,7 @@ def reset_stats(state: GaussianOptimizer) -> None:
 
 @torch.no_grad()
 def add_stats(state: GaussianOptimizer, means2d_grad: torch.Tensor, visible: torch.Tensor, radii: torch.Tensor,
-              width: int, height: int) -> None:
+              width: int, height: int, rows: torch.Tensor | None = None) -> None:
     """Accumulate one view's density statistics.
 
     Args:
@@ -130,11 +130,23 @@ def add_stats(state: GaussianOptimizer, means2d_grad: torch.Tensor, visible: tor
         visible: [N] bool, Gaussians the view rendered.
         radii: [N] screen radii (pixels) in the view.
         width, height: image size; the gradient is converted to NDC units (x W/2, x H/2).
+        rows: with compact gradients, the model rows [R] (distinct) of the rendered splats: the three
+            arguments above are then [R, ...], one entry per row.
     """
     stats = state.statistics
     scale = torch.tensor([width / 2.0, height / 2.0], device=means2d_grad.device, dtype=means2d_grad.dtype)
     norms = (means2d_grad * scale).norm(dim=-1)
     accum, count, radii_max = stats["grad_accum"], stats["grad_count"], stats["max_radii"]
+    if rows is not None:
+        if _stats_kernel_applies(norms, visible, radii) and _stats_kernel_applies(accum, count, radii_max):
+            _accumulate_rows(accum.numpy(), count.numpy(), radii_max.numpy(), rows.numpy(), norms.numpy(),
+                             visible.numpy(), radii.numpy())
+            return
+        seen = rows[visible]
+        accum[seen] += norms[visible]
+        count[seen] += 1
+        radii_max[seen] = torch.maximum(radii_max[seen], radii[visible].to(radii_max.dtype))
+        return
     if _stats_kernel_applies(accum, count, radii_max, norms, visible, radii):
         # one parallel pass instead of three masked gathers and scatters (the same additions and
         # maxima element by element, so the statistics are bit-identical to the torch lines below)
@@ -146,12 +158,13 @@ def add_stats(state: GaussianOptimizer, means2d_grad: torch.Tensor, visible: tor
     radii_max[visible] = torch.maximum(radii_max[visible], radii[visible].to(radii_max.dtype))
 
 
-def _stats_kernel_applies(accum, count, radii_max, norms, visible, radii) -> bool:
-    tensors = (accum, count, radii_max, norms, visible, radii)
-    return (all(t.device.type == "cpu" and t.is_contiguous() and not t.requires_grad for t in tensors)
-            and accum.dtype == count.dtype == radii_max.dtype == norms.dtype == torch.float32
-            and visible.dtype == torch.bool and radii.dtype == torch.int32
-            and len({t.shape[0] for t in tensors}) == 1 and all(t.dim() == 1 for t in tensors))
+def _stats_kernel_applies(*tensors) -> bool:
+    """CPU contiguous 1D tensors of one length: float32, except a bool (visible) and an int32 (radii)."""
+    kinds = {torch.float32, torch.bool, torch.int32}
+    return (all(t.device.type == "cpu" and t.is_contiguous() and not t.requires_grad and t.dtype in kinds
+                and t.dim() == 1 for t in tensors)
+            and len({t.shape[0] for t in tensors}) == 1
+            and sum(t.dtype == torch.bool for t in tensors) <= 1 and sum(t.dtype == torch.int32 for t in tensors) <= 1)
 
 
 @njit(parallel=True, cache=True)
@@ -162,6 +175,19 @@ def _accumulate_stats(accum, count, radii_max, norms, visible, radii):
             accum[i] += norms[i]
             count[i] += np.float32(1.0)
             r = np.float32(radii[i])
+            if r > radii_max[i]:
+                radii_max[i] = r
+
+
+@njit(parallel=True, cache=True)
+def _accumulate_rows(accum, count, radii_max, rows, norms, visible, radii):
+    """:func:`_accumulate_stats` for compact gradients: entry j belongs to Gaussian rows[j]."""
+    for j in prange(rows.shape[0]):
+        if visible[j]:
+            i = rows[j]
+            accum[i] += norms[j]
+            count[i] += np.float32(1.0)
+            r = np.float32(radii[j])
             if r > radii_max[i]:
                 radii_max[i] = r
 
