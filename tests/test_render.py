@@ -565,3 +565,16 @@ def test_radix_argsort_is_numpys_stable_order():
     for keys in cases:
         keys = np.asarray(keys, np.float32)
         np.testing.assert_array_equal(stable_argsort_f32(keys), np.argsort(keys, kind="stable"))
+
+
+def test_row_gather_equals_numpy_fancy_indexing():
+    from trace3d.render.kernels import gather_rows_as
+
+    rng = np.random.default_rng(0)
+    boxes = rng.integers(-5, 500, (3000, 4))
+    geom = rng.normal(size=(3000, 16)).astype(np.float32)
+    rows = rng.integers(0, 3000, 20000)
+    assert np.array_equal(gather_rows_as(boxes, rows, np.int32), boxes[rows].astype(np.int32))
+    out = gather_rows_as(geom, rows, np.float32)
+    assert out.dtype == np.float32 and out.flags.c_contiguous and np.array_equal(out, geom[rows])
+    assert gather_rows_as(geom, rows[:0], np.float32).shape == (0, 16)

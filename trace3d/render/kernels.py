@@ -782,6 +782,22 @@ def trace_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, labe
 # ----------------------------------------------------------------------------------------------
 
 
+@njit(parallel=True, cache=True)
+def _gather_rows(src, rows, out):
+    for j in prange(rows.shape[0]):
+        i = rows[j]
+        for c in range(src.shape[1]):
+            out[j, c] = src[i, c]
+
+
+def gather_rows_as(src: np.ndarray, rows: np.ndarray, dtype) -> np.ndarray:
+    """``np.ascontiguousarray(src[rows].astype(dtype))`` for a 2D array, as one parallel pass (numpy's
+    fancy indexing is single-threaded; the tile entries of a 504x378 view are a few hundred thousand)."""
+    out = np.empty((rows.shape[0], src.shape[1]), dtype)
+    _gather_rows(np.ascontiguousarray(src), np.ascontiguousarray(rows, dtype=np.int64), out)
+    return out
+
+
 class Binning:
     """Tile lists of one projection (numpy, CPU)."""
 
@@ -798,7 +814,7 @@ class Binning:
         rank = stable_argsort_f32(depth) if depth.dtype == np.float32 else np.argsort(depth, kind="stable")
         self.order = idx[rank].astype(np.int64)
         self.offsets, self.lists = bin_tiles(self.boxes, self.order, self.tiles_x, self.tiles_y)
-        self.entry_boxes = np.ascontiguousarray(self.boxes[self.lists].astype(np.int32))  # [E, 4]
+        self.entry_boxes = gather_rows_as(self.boxes, self.lists, np.int32)  # [E, 4]
         longest = int(np.diff(self.offsets).max()) if self.offsets.size > 1 else 0
         if longest >= 1 << 24:
             raise Trace3DError(f"render: a 16x16 tile holds {longest} splats; the CPU kernels support "
@@ -809,7 +825,7 @@ class Binning:
 
     def entry_geometry(self, geom: np.ndarray) -> np.ndarray:
         """[E, 16] ``geom`` rows in tile-list order (contiguous reads in the kernels)."""
-        return np.ascontiguousarray(geom[self.lists])
+        return gather_rows_as(geom, self.lists, geom.dtype)
 
 
 def pack_geometry(proj: Projected) -> Tensor:
