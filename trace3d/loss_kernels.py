@@ -94,19 +94,29 @@ def _blur(src, g, tmp, out):
 
 
 @njit(parallel=True, cache=True)
-def _target_stats(y, g):
-    """The target's blurred statistics (mean of y, mean of y^2) [2C, H, W] of y [H, W, C]: they do
-    not depend on the image, so a training view computes them once (:class:`_TargetStats`)."""
-    h, w, c = y.shape
-    stats = np.empty((2 * c, h, w), y.dtype)
+def _moment_planes(a, b, cross):
+    """The planes a, a^2 (and with ``cross`` a b) [2C or 3C, H, W] of a, b [H, W, C]: the statistics the
+    SSIM blurs."""
+    h, w, c = a.shape
+    stats = np.empty(((3 if cross else 2) * c, h, w), a.dtype)
     uw = np.uint64(w)
     for job in prange(c * h):
         ch = job // h
         i = job % h
         for j in range(uw):
-            b = y[i, j, ch]
-            stats[ch, i, j] = b
-            stats[c + ch, i, j] = b * b
+            v = a[i, j, ch]
+            stats[ch, i, j] = v
+            stats[c + ch, i, j] = v * v
+            if cross:
+                stats[2 * c + ch, i, j] = v * b[i, j, ch]
+    return stats
+
+
+@njit(parallel=True, cache=True)
+def _target_stats(y, g):
+    """The target's blurred statistics (mean of y, mean of y^2) [2C, H, W] of y [H, W, C]: they do
+    not depend on the image, so a training view computes them once (:class:`_TargetStats`)."""
+    stats = _moment_planes(y, y, False)
     blurred = np.empty_like(stats)
     _blur(stats, g, np.empty_like(stats), blurred)
     return blurred
@@ -118,16 +128,8 @@ def _ssim_terms(x, y, ystats, g, c1, c2, two, want_grad):
     three per-pixel partials (dS/dmx, dS/dexx, dS/dexy) stacked as [3C, H, W].  The constants come in
     the images' dtype, so float32 stays float32 (numba would promote a float literal to float64)."""
     h, w, c = x.shape
-    stats = np.empty((3 * c, h, w), x.dtype)
     uw = np.uint64(w)
-    for job in prange(c * h):
-        ch = job // h
-        i = job % h
-        for j in range(uw):
-            a = x[i, j, ch]
-            stats[ch, i, j] = a
-            stats[c + ch, i, j] = a * a
-            stats[2 * c + ch, i, j] = a * y[i, j, ch]
+    stats = _moment_planes(x, y, True)
     tmp = np.empty_like(stats)
     blurred = np.empty_like(stats)
     _blur(stats, g, tmp, blurred)

@@ -42,27 +42,19 @@ from ..scene import Camera
 
 
 @njit(parallel=True, cache=True)
-def _gather(srcs, rows, outs):
-    """outs[k][j] = srcs[k][rows[j]] for every array k (one pass over the rows for all of them)."""
+def _copy_rows(dsts, srcs, rows, scatter):
+    """For every array pair k: dsts[k][j] = srcs[k][rows[j]] (gather), or with ``scatter``
+    dsts[k][rows[j]] = srcs[k][j]; one pass over the rows for all of them."""
     for j in prange(rows.shape[0]):
-        i = rows[j]
-        for k in range(len(srcs)):
-            src = srcs[k]
-            out = outs[k]
-            for c in range(src.shape[1]):
-                out[j, c] = src[i, c]
-
-
-@njit(parallel=True, cache=True)
-def _scatter(dsts, rows, srcs):
-    """dsts[k][rows[j]] = srcs[k][j] for every array k."""
-    for j in prange(rows.shape[0]):
-        i = rows[j]
+        i = np.int64(rows[j])
+        jj = np.int64(j)
+        d = i if scatter else jj
+        s_ = jj if scatter else i
         for k in range(len(dsts)):
             dst = dsts[k]
             src = srcs[k]
             for c in range(dst.shape[1]):
-                dst[i, c] = src[j, c]
+                dst[d, c] = src[s_, c]
 
 
 @njit(parallel=True, cache=True)
@@ -96,8 +88,8 @@ def gather_rows(tensors: list[torch.Tensor], rows: torch.Tensor) -> list[torch.T
             outs[k] = torch.empty((rows.shape[0],) + tuple(t.shape[1:]), dtype=t.dtype)
             fast.append(k)
     if fast:
-        _gather(tuple(_rows_2d(tensors[k]) for k in fast), rows.numpy(),
-                tuple(outs[k].reshape(rows.shape[0], -1).numpy() for k in fast))
+        _copy_rows(tuple(outs[k].reshape(rows.shape[0], -1).numpy() for k in fast),
+                   tuple(_rows_2d(tensors[k]) for k in fast), rows.numpy(), False)
     return outs
 
 
@@ -112,7 +104,7 @@ def scatter_rows(dsts: list[torch.Tensor], rows: torch.Tensor, srcs: list[torch.
         else:
             fast.append((_rows_2d(d), _rows_2d(s)))
     if fast:
-        _scatter(tuple(d for d, _ in fast), rows.numpy(), tuple(s for _, s in fast))
+        _copy_rows(tuple(d for d, _ in fast), tuple(s for _, s in fast), rows.numpy(), True)
 
 
 def clear_rows(dsts: list[torch.Tensor], rows: torch.Tensor) -> None:
