@@ -133,7 +133,7 @@ def _ssim_terms(x, y, ystats, g, c1, c2, two, want_grad):
     tmp = np.empty_like(stats)
     blurred = np.empty_like(stats)
     _blur(stats, g, tmp, blurred)
-    s_map = np.empty((c, h, w), x.dtype)
+    s_map = np.empty((c, h, w), np.float64)  # the values in the images' dtype, held as float64 for the mean
     partials = np.empty((3 * c if want_grad else 0, h, w), x.dtype)
     for job in prange(c * h):
         ch = job // h
@@ -218,7 +218,7 @@ class _FusedSSIM(torch.autograd.Function):
         s_map, partials = _ssim_terms(x, y, ystats, g, dt(SSIM_C1), dt(SSIM_C2), dt(2.0), ctx.needs_input_grad[0])
         ctx.saved = (x, y, g, partials)
         # the mean in float64, then the image's dtype
-        return torch.tensor(float(s_map.astype(np.float64).mean()), dtype=image.dtype)
+        return torch.tensor(float(s_map.mean()), dtype=image.dtype)
 
     @staticmethod
     def backward(ctx, g_out):
@@ -295,7 +295,7 @@ class _FusedPhotometric(torch.autograd.Function):
         l1 = torch.from_numpy(absdiff).mean()
         mse = torch.from_numpy(sqerr).mean()
         ctx.mark_non_differentiable(mse)
-        return l1, torch.tensor(float(s_map.astype(np.float64).mean()), dtype=image.dtype), mse
+        return l1, torch.tensor(float(s_map.mean()), dtype=image.dtype), mse
 
     @staticmethod
     def backward(ctx, g_l1, g_s, g_mse):
