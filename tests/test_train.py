@@ -1018,3 +1018,29 @@ def test_surface_depth_kernel_is_the_torch_operations_bit_for_bit():
         for a, b in zip(*grads):
             assert torch.equal(a, b)
         assert bool((values[0][:5] == ratio * median[:5]).all())
+
+
+def test_compact_gradients_with_a_view_that_sees_nothing():
+    """A training view facing away from every Gaussian: the compact path renders zero rows and still
+    gives the dense fit exactly (and the row copies accept empty row sets)."""
+    from trace3d.training.sparse import clear_rows, gather_rows, scatter_rows, visible_rows
+
+    cameras, images = plane_views(4)
+    c = cameras[0]
+    away = Camera("away", "train", c.width, c.height, c.K,
+                  look_at(np.zeros(3), np.array([0.0, 0.0, -PLANE_Z])))
+    cameras.append(away)
+    images.append(torch.zeros_like(images[0]))
+    model = init_from_points(plane_points(), np.full((300, 3), 0.5), sh_degree=1, seed=0)
+    assert visible_rows(model, away, 0.01)[0].numel() == 0
+    fits = [fit(model, cameras, images, tiny_params(iterations=40, densify_from=10, densify_interval=10,
+                                                     sparse_grad=sparse), progress=False) for sparse in (False, True)]
+    for name in GaussianModel.PARAM_NAMES:
+        assert torch.equal(getattr(fits[0].model, name), getattr(fits[1].model, name)), name
+    empty = torch.zeros(0, dtype=torch.int64)
+    t = torch.randn(10, 3)
+    assert gather_rows([t], empty)[0].shape == (0, 3)
+    before = t.clone()
+    scatter_rows([t], empty, [torch.zeros(0, 3)])
+    clear_rows([t], empty)
+    assert torch.equal(t, before)

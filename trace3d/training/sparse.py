@@ -71,7 +71,8 @@ def _clear(dsts, rows):
 def _rows_2d(t: torch.Tensor) -> np.ndarray | None:
     """A contiguous float32 CPU tensor as a writable [N, D] numpy view (None where the kernels do not
     apply)."""
-    if t.device.type != "cpu" or not t.is_contiguous() or t.dtype != torch.float32 or t.dim() == 0:
+    if (t.device.type != "cpu" or not t.is_contiguous() or t.dtype != torch.float32 or t.dim() == 0
+            or t.numel() == 0):  # empty: torch's index operations (a view that sees no Gaussian)
         return None
     return t.detach().reshape(t.shape[0], -1).numpy()
 
@@ -79,6 +80,8 @@ def _rows_2d(t: torch.Tensor) -> np.ndarray | None:
 def gather_rows(tensors: list[torch.Tensor], rows: torch.Tensor) -> list[torch.Tensor]:
     """``[t.index_select(0, rows) for t in tensors]`` (detached); one parallel copy for the contiguous
     float32 CPU tensors."""
+    if rows.numel() == 0:
+        return [t.detach().index_select(0, rows) for t in tensors]
     outs = [None] * len(tensors)
     fast = []
     for k, t in enumerate(tensors):
@@ -96,6 +99,8 @@ def gather_rows(tensors: list[torch.Tensor], rows: torch.Tensor) -> list[torch.T
 def scatter_rows(dsts: list[torch.Tensor], rows: torch.Tensor, srcs: list[torch.Tensor]) -> None:
     """``dst.index_copy_(0, rows, src)`` for every pair, in place; one parallel copy for the
     contiguous float32 CPU tensors."""
+    if rows.numel() == 0:
+        return
     fast = []
     for d, s in zip(dsts, srcs):
         s = s.contiguous()
@@ -110,6 +115,8 @@ def scatter_rows(dsts: list[torch.Tensor], rows: torch.Tensor, srcs: list[torch.
 def clear_rows(dsts: list[torch.Tensor], rows: torch.Tensor) -> None:
     """``dst.index_fill_(0, rows, 0)`` for every tensor, in place; one parallel pass for the contiguous
     float32 CPU tensors."""
+    if rows.numel() == 0:
+        return
     fast = []
     for d in dsts:
         if _rows_2d(d) is None:
