@@ -697,7 +697,8 @@ def test_density_statistics_kernel_matches_torch_lines():
     radii = torch.randint(0, 12, (n,), generator=g, dtype=torch.int32)
     assert st._stats_kernel_applies(accum, count, radii_max, norms, visible, radii)
     a, c, r = accum.clone(), count.clone(), radii_max.clone()
-    st._accumulate_stats(a.numpy(), c.numpy(), r.numpy(), norms.numpy(), visible.numpy(), radii.numpy())
+    st._accumulate_stats(a.numpy(), c.numpy(), r.numpy(), np.arange(n), norms.numpy(), visible.numpy(),
+                         radii.numpy())
     accum[visible] += norms[visible]
     count[visible] += 1
     radii_max[visible] = torch.maximum(radii_max[visible], radii[visible].to(radii_max.dtype))

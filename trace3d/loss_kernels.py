@@ -158,18 +158,6 @@ def _ssim_terms(x, y, ystats, g, c1, c2, two, want_grad):
     return s_map, partials
 
 
-@njit(parallel=True, cache=True)
-def _ssim_input_grad(x, y, blurred_partials, scale, out):
-    """dL/dx [H, W, C] from the blurred partials [3C, H, W] of x, y [H, W, C]."""
-    h, w, c = x.shape
-    uw = np.uint64(w)
-    for i in prange(h):
-        for j in range(uw):
-            for ch in range(c):
-                out[i, j, ch] = scale * (blurred_partials[ch, i, j] + (x[i, j, ch] + x[i, j, ch]) * blurred_partials[c + ch, i, j]
-                                         + y[i, j, ch] * blurred_partials[2 * c + ch, i, j])
-
-
 class _TargetStats:
     """The blurred target statistics of recent targets, least recently used dropped first beyond
     ``max_bytes`` (a fit's views: 33 MB for 72 views at 160x120).  An entry is valid while its tensor
@@ -207,29 +195,47 @@ class _TargetStats:
 _target_cache = _TargetStats()
 
 
+def _ssim_forward(ctx, x: np.ndarray, y: np.ndarray, target: torch.Tensor, want_grad: bool) -> float:
+    """Mean SSIM of x against y ([H, W, C] arrays of one dtype; ``target`` the tensor behind y, for
+    the cache); keeps what the backward needs on ``ctx``."""
+    dt = x.dtype.type
+    g = _window(x.dtype)
+    s_map, partials = _ssim_terms(x, y, _target_cache.get(target, y, g), g, dt(SSIM_C1), dt(SSIM_C2), dt(2.0),
+                                  want_grad)
+    ctx.saved = (x, y, g, partials)
+    return float(s_map.mean())  # the mean in float64 (the map holds the values as float64)
+
+
+def _ssim_backward(ctx, g_s, g_l1: np.float32 | None = None) -> torch.Tensor:
+    """dL/dx [H, W, C] from the SSIM's upstream gradient ``g_s`` (None: no SSIM term) plus, with
+    ``g_l1``, the L1 term's (its upstream gradient already divided by the value count)."""
+    x, y, g, partials = ctx.saved
+    want_ssim = g_s is not None
+    if want_ssim:
+        blurred = np.empty_like(partials)
+        _blur(partials, g, np.empty_like(partials), blurred)
+        scale = x.dtype.type(float(g_s) / x.size)
+    else:
+        blurred, scale = partials, x.dtype.type(0.0)
+    grad = np.empty_like(x)
+    _photometric_grad(x, y, blurred, scale, x.dtype.type(0.0) if g_l1 is None else g_l1, want_ssim, g_l1 is not None,
+                      grad)
+    return torch.from_numpy(grad)
+
+
 class _FusedSSIM(torch.autograd.Function):
     @staticmethod
     def forward(ctx, image, target):
         dt = np.float64 if image.dtype == torch.float64 else np.float32
         x = np.ascontiguousarray(image.detach().numpy().astype(dt, copy=False))
         y = np.ascontiguousarray(target.detach().numpy().astype(dt, copy=False))
-        g = _window(dt)
-        ystats = _target_cache.get(target, y, g)
-        s_map, partials = _ssim_terms(x, y, ystats, g, dt(SSIM_C1), dt(SSIM_C2), dt(2.0), ctx.needs_input_grad[0])
-        ctx.saved = (x, y, g, partials)
-        # the mean in float64, then the image's dtype
-        return torch.tensor(float(s_map.mean()), dtype=image.dtype)
+        return torch.tensor(_ssim_forward(ctx, x, y, target, ctx.needs_input_grad[0]), dtype=image.dtype)
 
     @staticmethod
     def backward(ctx, g_out):
-        x, y, g, partials = ctx.saved
         if not ctx.needs_input_grad[0]:
             return None, None
-        blurred = np.empty_like(partials)
-        _blur(partials, g, np.empty_like(partials), blurred)
-        grad = np.empty_like(x)
-        _ssim_input_grad(x, y, blurred, x.dtype.type(float(g_out) / x.size), grad)
-        return torch.from_numpy(grad), None
+        return _ssim_backward(ctx, g_out), None
 
 
 # ----------------------------------------------------------------------------------------------
@@ -260,9 +266,10 @@ def _error_maps(x, y, absdiff, sqerr):
 
 
 @njit(parallel=True, cache=True)
-def _photometric_grad(x, y, blurred_partials, scale, l1_scale, want_ssim, out):
-    """The SSIM gradient (as :func:`_ssim_input_grad`, when ``want_ssim``) plus the L1 gradient
-    ``l1_scale * sgn(x - y)`` into out [H, W, C]."""
+def _photometric_grad(x, y, blurred_partials, scale, l1_scale, want_ssim, want_l1, out):
+    """dL/dx [H, W, C] of x, y [H, W, C]: the SSIM term ``scale * (bm + 2 x bxx + y bxy)`` from the
+    blurred partials [3C, H, W] (with ``want_ssim``) plus the L1 term ``l1_scale * sgn(x - y)`` (with
+    ``want_l1``)."""
     h, w, c = x.shape
     uw = np.uint64(w)
     zero = x.dtype.type(0.0)
@@ -275,7 +282,7 @@ def _photometric_grad(x, y, blurred_partials, scale, l1_scale, want_ssim, out):
                 if want_ssim:
                     gs = scale * (blurred_partials[ch, i, j] + (x[i, j, ch] + x[i, j, ch]) * blurred_partials[c + ch, i, j]
                                   + y[i, j, ch] * blurred_partials[2 * c + ch, i, j])
-                    out[i, j, ch] = gs + g1
+                    out[i, j, ch] = gs + g1 if want_l1 else gs
                 else:
                     out[i, j, ch] = g1
 
@@ -287,34 +294,21 @@ class _FusedPhotometric(torch.autograd.Function):
         y = np.ascontiguousarray(target.detach().numpy())
         absdiff, sqerr = np.empty_like(x), np.empty_like(x)
         _error_maps(x, y, absdiff, sqerr)
-        g = _window(np.float32)
-        ystats = _target_cache.get(target, y, g)
-        s_map, partials = _ssim_terms(x, y, ystats, g, np.float32(SSIM_C1), np.float32(SSIM_C2), np.float32(2.0),
-                                      ctx.needs_input_grad[0])
-        ctx.saved = (x, y, g, partials)
+        s = _ssim_forward(ctx, x, y, target, ctx.needs_input_grad[0])
         l1 = torch.from_numpy(absdiff).mean()
         mse = torch.from_numpy(sqerr).mean()
         ctx.mark_non_differentiable(mse)
-        return l1, torch.tensor(float(s_map.mean()), dtype=image.dtype), mse
+        return l1, torch.tensor(s, dtype=image.dtype), mse
 
     @staticmethod
     def backward(ctx, g_l1, g_s, g_mse):
-        x, y, g, partials = ctx.saved
         if not ctx.needs_input_grad[0]:
             return None, None
-        want_ssim = g_s is not None
-        if want_ssim:
-            blurred = np.empty_like(partials)
-            _blur(partials, g, np.empty_like(partials), blurred)
-            scale = x.dtype.type(float(g_s) / x.size)
-        else:
-            blurred, scale = partials, x.dtype.type(0.0)
+        x = ctx.saved[0]
         # torch: MeanBackward g.expand() / numel, then AbsBackward grad * sgn(x - y), in float32
         l1_scale = (np.float32(0.0) if g_l1 is None
                     else np.float32(g_l1.detach().to(torch.float32).numpy()) / np.float32(x.size))
-        grad = np.empty_like(x)
-        _photometric_grad(x, y, blurred, scale, l1_scale, want_ssim, grad)
-        return torch.from_numpy(grad), None
+        return _ssim_backward(ctx, g_s, l1_scale), None
 
 
 def fused_photometric_applies(image: torch.Tensor, target: torch.Tensor) -> bool:

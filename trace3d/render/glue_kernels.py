@@ -60,19 +60,28 @@ def _np(t: Tensor) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 
 
+@njit(cache=True, inline="always")
+def _camera_point(means, g, K, R, t, near):
+    """Gaussian g's camera-space centre (p0, p1, p2), safe depth (1 when not in front of ``near``) and
+    projected centre (m0, m1), in float64."""
+    x, y, z = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
+    p0 = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
+    p1 = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
+    p2 = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+    zs = p2 if p2 > near else 1.0
+    return (p0, p1, p2, zs, (K[0, 0] * p0 + K[0, 1] * p1 + K[0, 2] * p2) / zs,
+            (K[1, 0] * p0 + K[1, 1] * p1 + K[1, 2] * p2) / zs)
+
+
 @njit(parallel=True, cache=True)
 def _points_forward(means, K, R, t, near, p_cam, z_safe, m2d):
     n = means.shape[0]
     for g in prange(n):
-        x, y, z = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
-        p0 = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
-        p1 = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
-        p2 = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+        p0, p1, p2, zs, m0, m1 = _camera_point(means, g, K, R, t, near)
         p_cam[g, 0], p_cam[g, 1], p_cam[g, 2] = p0, p1, p2
-        zs = p2 if p2 > near else 1.0
         z_safe[g] = zs
-        m2d[g, 0] = (K[0, 0] * p0 + K[0, 1] * p1 + K[0, 2] * p2) / zs
-        m2d[g, 1] = (K[1, 0] * p0 + K[1, 1] * p1 + K[1, 2] * p2) / zs
+        m2d[g, 0] = m0
+        m2d[g, 1] = m1
 
 
 @njit(parallel=True, cache=True)
@@ -199,10 +208,20 @@ def _camera_axes_at(quats, R, g, pc0, pc1, pc2):
             aw0, aw1, aw2, sign)
 
 
+@njit(cache=True, inline="always")
+def _ray_rows(K, au0, au1, au2, av0, av1, av2, su, sv, z_, mx, my):
+    """The rows T_x, T_y, T_w of T = [K s_u t_u | K s_v t_v | z (means2d, 1)] from the camera-space
+    axes t_u, t_v, the scales, the centre depth and the projected centre (float64)."""
+    u0, u1, u2 = au0 * su, au1 * su, au2 * su
+    v0, v1, v2 = av0 * sv, av1 * sv, av2 * sv
+    return (K[0, 0] * u0 + K[0, 1] * u1 + K[0, 2] * u2, K[0, 0] * v0 + K[0, 1] * v1 + K[0, 2] * v2, z_ * mx,
+            K[1, 0] * u0 + K[1, 1] * u1 + K[1, 2] * u2, K[1, 0] * v0 + K[1, 1] * v1 + K[1, 2] * v2, z_ * my,
+            u2, v2, z_)
+
+
 @njit(parallel=True, cache=True)
 def _frames_forward(quats, scales, m2d, zs, pcam, K, R, ray_t, coeffs, normals):
     n = quats.shape[0]
-    k00, k01, k02, k10, k11, k12 = K[0, 0], K[0, 1], K[0, 2], K[1, 0], K[1, 1], K[1, 2]
     for g in prange(n):
         # camera-space axes (columns of R @ Rq) and the normal's side
         (w, x, y, z, inv, q00, q01, q02, q10, q11, q12, q20, q21, q22, au0, au1, au2, av0, av1, av2, aw0, aw1, aw2,
@@ -210,19 +229,9 @@ def _frames_forward(quats, scales, m2d, zs, pcam, K, R, ray_t, coeffs, normals):
         normals[g, 0] = sign * aw0
         normals[g, 1] = sign * aw1
         normals[g, 2] = sign * aw2
-        su = float(scales[g, 0])
-        sv = float(scales[g, 1])
-        u0, u1, u2 = au0 * su, au1 * su, au2 * su
-        v0, v1, v2 = av0 * sv, av1 * sv, av2 * sv
-        z_ = float(zs[g])
-        # rows T_x, T_y, T_w of T = [K s_u t_u | K s_v t_v | z (means2d, 1)]
-        tx0 = k00 * u0 + k01 * u1 + k02 * u2
-        tx1 = k00 * v0 + k01 * v1 + k02 * v2
-        tx2 = z_ * float(m2d[g, 0])
-        ty0 = k10 * u0 + k11 * u1 + k12 * u2
-        ty1 = k10 * v0 + k11 * v1 + k12 * v2
-        ty2 = z_ * float(m2d[g, 1])
-        tw0, tw1, tw2 = u2, v2, z_
+        tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2 = _ray_rows(
+            K, au0, au1, au2, av0, av1, av2, float(scales[g, 0]), float(scales[g, 1]), float(zs[g]),
+            float(m2d[g, 0]), float(m2d[g, 1]))
         ray_t[g, 0, 0], ray_t[g, 0, 1], ray_t[g, 0, 2] = tx0, tx1, tx2
         ray_t[g, 1, 0], ray_t[g, 1, 1], ray_t[g, 1, 2] = ty0, ty1, ty2
         ray_t[g, 2, 0], ray_t[g, 2, 1], ray_t[g, 2, 2] = tw0, tw1, tw2
@@ -258,18 +267,10 @@ def _frames_backward(quats, scales, m2d, zs, pcam, K, R, g_ray, g_coeffs, g_norm
          sign) = _camera_axes(quats, R, pcam, g)
         su = float(scales[g, 0])
         sv = float(scales[g, 1])
-        u0, u1, u2 = au0 * su, au1 * su, au2 * su
-        v0, v1, v2 = av0 * sv, av1 * sv, av2 * sv
         z_ = float(zs[g])
         mx = float(m2d[g, 0])
         my = float(m2d[g, 1])
-        tx0 = k00 * u0 + k01 * u1 + k02 * u2
-        tx1 = k00 * v0 + k01 * v1 + k02 * v2
-        tx2 = z_ * mx
-        ty0 = k10 * u0 + k11 * u1 + k12 * u2
-        ty1 = k10 * v0 + k11 * v1 + k12 * v2
-        ty2 = z_ * my
-        tw0, tw1, tw2 = u2, v2, z_
+        tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2 = _ray_rows(K, au0, au1, au2, av0, av1, av2, su, sv, z_, mx, my)
         # gradients of the rows of T: direct, then through the three cross products
         gx0, gx1, gx2 = float(g_ray[g, 0, 0]), float(g_ray[g, 0, 1]), float(g_ray[g, 0, 2])
         gy0, gy1, gy2 = float(g_ray[g, 1, 0]), float(g_ray[g, 1, 1]), float(g_ray[g, 1, 2])

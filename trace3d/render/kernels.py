@@ -783,18 +783,27 @@ def trace_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, labe
 
 
 @njit(parallel=True, cache=True)
-def _gather_rows(src, rows, out):
+def copy_rows(dsts, srcs, rows, scatter):
+    """For every pair k of 2D arrays: dsts[k][j] = srcs[k][rows[j]] (gather), or with ``scatter``
+    dsts[k][rows[j]] = srcs[k][j]; one parallel pass over the rows for all of them (values cast to
+    the destination's dtype)."""
     for j in prange(rows.shape[0]):
-        i = rows[j]
-        for c in range(src.shape[1]):
-            out[j, c] = src[i, c]
+        i = np.int64(rows[j])
+        jj = np.int64(j)
+        d = i if scatter else jj
+        s_ = jj if scatter else i
+        for k in range(len(dsts)):
+            dst = dsts[k]
+            src = srcs[k]
+            for c in range(dst.shape[1]):
+                dst[d, c] = src[s_, c]
 
 
 def gather_rows_as(src: np.ndarray, rows: np.ndarray, dtype) -> np.ndarray:
     """``np.ascontiguousarray(src[rows].astype(dtype))`` for a 2D array, as one parallel pass (numpy's
     fancy indexing is single-threaded; the tile entries of a 504x378 view are a few hundred thousand)."""
     out = np.empty((rows.shape[0], src.shape[1]), dtype)
-    _gather_rows(np.ascontiguousarray(src), np.ascontiguousarray(rows, dtype=np.int64), out)
+    copy_rows((out,), (np.ascontiguousarray(src),), np.ascontiguousarray(rows, dtype=np.int64), False)
     return out
 
 

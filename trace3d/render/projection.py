@@ -37,7 +37,7 @@ from torch import Tensor
 from ..errors import Trace3DError
 from ..geometry import quat_to_rotmat  # noqa: F401  (re-exported by trace3d.render)
 from ..scene import Camera
-from .glue_kernels import _camera_axes_at, camera_points, splat_frames, use_fused
+from .glue_kernels import _camera_axes_at, _camera_point, _ray_rows, camera_points, splat_frames, use_fused
 
 ALPHA_MIN = 1.0 / 255.0  # skip a pair whose alpha is below this
 ALPHA_MAX = 0.99  # clamp alpha
@@ -323,33 +323,24 @@ def _visibility_kernel(means, quats, scales, op, K, R, t, near, near32, width, h
     :func:`_boxes_kernel`), with every intermediate the projection stores rounded to the splats'
     float32 where it rounds it, so the answer is the projection's bit for bit (tested)."""
     n = means.shape[0]
-    k00, k01, k02, k10, k11, k12 = K[0, 0], K[0, 1], K[0, 2], K[1, 0], K[1, 1], K[1, 2]
     for g in prange(n):
         visible[g] = False
-        x, y, z = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
-        p0 = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0]
-        p1 = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1]
-        p2 = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2]
+        p0, p1, p2, zs, m0, m1 = _camera_point(means, g, K, R, t, near)
         pz = np.float32(p2)
         o = float(op[g])
         if not pz > near32 or not o > alpha_min:  # in_front is the float32 depth against near
             continue
-        zs = p2 if p2 > near else 1.0
-        m0 = float(np.float32((K[0, 0] * p0 + K[0, 1] * p1 + K[0, 2] * p2) / zs))
-        m1 = float(np.float32((K[1, 0] * p0 + K[1, 1] * p1 + K[1, 2] * p2) / zs))
+        m0 = float(np.float32(m0))
+        m1 = float(np.float32(m1))
         z_ = float(np.float32(zs))
         (w_, qx, qy, qz, inv, q00, q01, q02, q10, q11, q12, q20, q21, q22, au0, au1, au2, av0, av1, av2, aw0, aw1,
          aw2, sign) = _camera_axes_at(quats, R, g, float(np.float32(p0)), float(np.float32(p1)), float(pz))
-        su = float(scales[g, 0])
-        sv = float(scales[g, 1])
-        u0, u1, u2 = au0 * su, au1 * su, au2 * su
-        v0, v1, v2 = av0 * sv, av1 * sv, av2 * sv
-        x0, y0, x1, y1 = _box(float(np.float32(k00 * u0 + k01 * u1 + k02 * u2)),
-                              float(np.float32(k00 * v0 + k01 * v1 + k02 * v2)), float(np.float32(z_ * m0)),
-                              float(np.float32(k10 * u0 + k11 * u1 + k12 * u2)),
-                              float(np.float32(k10 * v0 + k11 * v1 + k12 * v2)), float(np.float32(z_ * m1)),
-                              float(np.float32(u2)), float(np.float32(v2)), z_, m0, m1, o, width, height, margin,
-                              filter_half, near)
+        tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2 = _ray_rows(K, au0, au1, au2, av0, av1, av2, float(scales[g, 0]),
+                                                               float(scales[g, 1]), z_, m0, m1)
+        f = np.float32
+        x0, y0, x1, y1 = _box(float(f(tx0)), float(f(tx1)), float(f(tx2)), float(f(ty0)), float(f(ty1)),
+                              float(f(ty2)), float(f(tw0)), float(f(tw1)), float(f(tw2)), m0, m1, o, width, height,
+                              margin, filter_half, near)
         visible[g] = x1 > x0 and y1 > y0
 
 

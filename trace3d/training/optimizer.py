@@ -95,16 +95,19 @@ class GaussianOptimizer:
     def lr(self, name: str) -> float:
         return next(g["lr"] for g in self.optimizer.param_groups if g["name"] == name)
 
-    def step(self, visible: torch.Tensor | None = None) -> None:
+    def step(self, visible: torch.Tensor | None = None, rows: torch.Tensor | None = None) -> None:
         """One Adam step, then the gradients are cleared.
 
         Args:
             visible: [N] bool, the Gaussians the view rendered: with ``params.visible_adam`` only
                 their parameters and moments are updated (see :meth:`visible_step`); ignored
                 otherwise, or when its length is not the model's (density control just edited it).
+            rows: instead of ``visible``, the rendered Gaussians' rows (ascending).
         """
-        if self.params.visible_adam and visible is not None and visible.shape[0] == len(self.model):
-            self.visible_step(torch.nonzero(visible).squeeze(1))
+        if self.params.visible_adam and rows is None and visible is not None and visible.shape[0] == len(self.model):
+            rows = torch.nonzero(visible).squeeze(1)
+        if self.params.visible_adam and rows is not None:
+            self.visible_step(rows)
         else:
             with torch_threads(self.bulk_threads):
                 self.optimizer.step()
@@ -139,11 +142,7 @@ class GaussianOptimizer:
             touched.append((buffer, grad))
         scatter_rows([b for b, _ in touched], rows, [g for _, g in touched])
         try:
-            if self.params.visible_adam:
-                self.visible_step(rows if visible is None else rows[visible])
-                self.optimizer.zero_grad(set_to_none=True)
-            else:
-                self.step()
+            self.step(rows=rows if visible is None else rows[visible])
         finally:
             clear_rows([b for b, _ in touched], rows)
 

@@ -23,14 +23,13 @@ view did not see gets exactly the zero gradient the dense path gives it. Tests c
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import torch
 from numba import njit, prange
 
 from ..gaussians import GaussianModel
 from ..render import Splats
+from ..render.kernels import copy_rows
 from ..render.projection import visible_mask
 from ..scene import Camera
 
@@ -39,22 +38,6 @@ from ..scene import Camera
 # Row copies (torch's index_select / index_copy_ / index_fill_ run on one thread in the fit and
 # took 4.4 ms per iteration at 160x120 for these; each is a plain copy, so the result is the same)
 # ----------------------------------------------------------------------------------------------
-
-
-@njit(parallel=True, cache=True)
-def _copy_rows(dsts, srcs, rows, scatter):
-    """For every array pair k: dsts[k][j] = srcs[k][rows[j]] (gather), or with ``scatter``
-    dsts[k][rows[j]] = srcs[k][j]; one pass over the rows for all of them."""
-    for j in prange(rows.shape[0]):
-        i = np.int64(rows[j])
-        jj = np.int64(j)
-        d = i if scatter else jj
-        s_ = jj if scatter else i
-        for k in range(len(dsts)):
-            dst = dsts[k]
-            src = srcs[k]
-            for c in range(dst.shape[1]):
-                dst[d, c] = src[s_, c]
 
 
 @njit(parallel=True, cache=True)
@@ -91,7 +74,7 @@ def gather_rows(tensors: list[torch.Tensor], rows: torch.Tensor) -> list[torch.T
             outs[k] = torch.empty((rows.shape[0],) + tuple(t.shape[1:]), dtype=t.dtype)
             fast.append(k)
     if fast:
-        _copy_rows(tuple(outs[k].reshape(rows.shape[0], -1).numpy() for k in fast),
+        copy_rows(tuple(outs[k].reshape(rows.shape[0], -1).numpy() for k in fast),
                    tuple(_rows_2d(tensors[k]) for k in fast), rows.numpy(), False)
     return outs
 
@@ -109,7 +92,7 @@ def scatter_rows(dsts: list[torch.Tensor], rows: torch.Tensor, srcs: list[torch.
         else:
             fast.append((_rows_2d(d), _rows_2d(s)))
     if fast:
-        _copy_rows(tuple(d for d, _ in fast), tuple(s for _, s in fast), rows.numpy(), True)
+        copy_rows(tuple(d for d, _ in fast), tuple(s for _, s in fast), rows.numpy(), True)
 
 
 def clear_rows(dsts: list[torch.Tensor], rows: torch.Tensor) -> None:

@@ -137,25 +137,18 @@ def add_stats(state: GaussianOptimizer, means2d_grad: torch.Tensor, visible: tor
     scale = torch.tensor([width / 2.0, height / 2.0], device=means2d_grad.device, dtype=means2d_grad.dtype)
     norms = (means2d_grad * scale).norm(dim=-1)
     accum, count, radii_max = stats["grad_accum"], stats["grad_count"], stats["max_radii"]
-    if rows is not None:
-        if _stats_kernel_applies(norms, visible, radii) and _stats_kernel_applies(accum, count, radii_max):
-            _accumulate_rows(accum.numpy(), count.numpy(), radii_max.numpy(), rows.numpy(), norms.numpy(),
-                             visible.numpy(), radii.numpy())
-            return
-        seen = rows[visible]
-        accum[seen] += norms[visible]
-        count[seen] += 1
-        radii_max[seen] = torch.maximum(radii_max[seen], radii[visible].to(radii_max.dtype))
-        return
-    if _stats_kernel_applies(accum, count, radii_max, norms, visible, radii):
+    if (_stats_kernel_applies(norms, visible, radii) and _stats_kernel_applies(accum, count, radii_max)
+            and (rows is not None or norms.shape[0] == accum.shape[0])):
         # one parallel pass instead of three masked gathers and scatters (the same additions and
         # maxima element by element, so the statistics are bit-identical to the torch lines below)
-        _accumulate_stats(accum.numpy(), count.numpy(), radii_max.numpy(), norms.numpy(), visible.numpy(),
+        entries = np.arange(accum.shape[0], dtype=np.int64) if rows is None else rows.numpy()
+        _accumulate_stats(accum.numpy(), count.numpy(), radii_max.numpy(), entries, norms.numpy(), visible.numpy(),
                           radii.numpy())
         return
-    accum[visible] += norms[visible]
-    count[visible] += 1
-    radii_max[visible] = torch.maximum(radii_max[visible], radii[visible].to(radii_max.dtype))
+    seen = visible if rows is None else rows[visible]
+    accum[seen] += norms[visible]
+    count[seen] += 1
+    radii_max[seen] = torch.maximum(radii_max[seen], radii[visible].to(radii_max.dtype))
 
 
 def _stats_kernel_applies(*tensors) -> bool:
@@ -168,20 +161,9 @@ def _stats_kernel_applies(*tensors) -> bool:
 
 
 @njit(parallel=True, cache=True)
-def _accumulate_stats(accum, count, radii_max, norms, visible, radii):
-    """``add_stats``' three masked updates in one pass (twin: its torch lines, tested equal)."""
-    for i in prange(accum.shape[0]):
-        if visible[i]:
-            accum[i] += norms[i]
-            count[i] += np.float32(1.0)
-            r = np.float32(radii[i])
-            if r > radii_max[i]:
-                radii_max[i] = r
-
-
-@njit(parallel=True, cache=True)
-def _accumulate_rows(accum, count, radii_max, rows, norms, visible, radii):
-    """:func:`_accumulate_stats` for compact gradients: entry j belongs to Gaussian rows[j]."""
+def _accumulate_stats(accum, count, radii_max, rows, norms, visible, radii):
+    """``add_stats``' three masked updates in one pass (twin: its torch lines, tested equal); entry j
+    (norms, visible, radii) belongs to Gaussian rows[j] (distinct rows: race-free)."""
     for j in prange(rows.shape[0]):
         if visible[j]:
             i = rows[j]
