@@ -243,6 +243,10 @@ class TestSSIM:
             (g2,) = torch.autograd.grad(loss_t * 1.7, x2)
             assert torch.equal(g1, g2), lam
             assert bool((g1 != 0).any())
+        from trace3d.loss_kernels import fused_photometric
+
+        with pytest.raises(ValueError, match="fused_photometric: needs"):
+            fused_photometric(image.double(), target.double())
 
     def test_photometric_loss_weights(self):
         a = torch.zeros(16, 16, 3)
