@@ -259,8 +259,8 @@ def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, ne
     offsets: with one base pointer and no negative-index wrap-around the compiler can prove that
     lanes never alias.  List positions are stored tile-relative (exact in float32 below 2^24; the
     binning refuses longer tile lists).  The first 8 channels are accumulated inside pass 2 at fixed
-    plane offsets (vectorised); further channels follow, one 16-lane loop per channel (lanes that did
-    not blend add w = 0).
+    plane offsets (vectorised); further channels follow, one loop over the tile's lanes per channel
+    (lanes that did not blend add w = 0).
 
     Args:
         egeom: [E, 16] float32 geometry per tile-list entry (``geom`` gathered by ``lists``);
@@ -384,15 +384,21 @@ def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, ne
                     buf[F_MAT + p] = rel if med else mat_p
                     finished += np.int64(stop)
                 n_done += finished
-                # channels beyond the first 8 (planes after the 8 fixed ones): all 16 lanes per
-                # channel, vectorised (a lane that did not blend has w = 0 and adds nothing)
+                # channels beyond the first 8 (planes after the 8 fixed ones): the tile's lanes inside
+                # the image per channel (a lane that did not blend has w = 0 and adds nothing).  The
+                # lane count is a runtime value on purpose: with the constant 16 the loop is unrolled
+                # into scalar operations (the planes and the weights share one buffer, so the
+                # unrolled stores cannot be proven apart); a runtime trip count lets the loop
+                # vectoriser check that once per loop (16-channel forward 30 -> 20 ms at 504x378,
+                # the same values: measured 2026-11-26)
                 if k_ch > 8:
                     wrow = F_RW + row
+                    lanes = np.uint64(px1 - px0)
                     for ch in range(8, k_ch):
                         v_ch = vals[g, ch]
                         plane = F_ACC + np.uint64(ch * TILE_PIXELS) + row
-                        for i in range(TILE):
-                            buf[plane + np.uint64(i)] += buf[wrow + np.uint64(i)] * v_ch
+                        for i in range(lanes):
+                            buf[plane + i] += buf[wrow + i] * v_ch
             if n_done == n_pix:
                 break
         pairs[t] = visited
