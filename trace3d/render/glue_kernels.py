@@ -482,6 +482,22 @@ def _direction(means, g, cx, cy, cz):
     return dx * inv, dy * inv, dz * inv, inv
 
 
+@njit(cache=True, inline="always")
+def _sh_values(sh_dc, sh_rest, g, b, count):
+    """The three channels' SH sums of Gaussian g (before the + 0.5 and the clamp), each in coefficient
+    order: the three chains of additions are interleaved, so that they overlap instead of waiting
+    for each other (the same values as one channel after the other)."""
+    v0 = _C0 * float(sh_dc[g, 0, 0])
+    v1 = _C0 * float(sh_dc[g, 0, 1])
+    v2 = _C0 * float(sh_dc[g, 0, 2])
+    for i in range(1, count):
+        bi = b[i]
+        v0 += bi * float(sh_rest[g, i - 1, 0])
+        v1 += bi * float(sh_rest[g, i - 1, 1])
+        v2 += bi * float(sh_rest[g, i - 1, 2])
+    return v0, v1, v2
+
+
 @njit(parallel=True, cache=True)
 def _sh_forward(means, sh_dc, sh_rest, center, degree, rows, colors):
     """colors[j] = the SH colour of Gaussian rows[j]."""
@@ -495,11 +511,10 @@ def _sh_forward(means, sh_dc, sh_rest, center, degree, rows, colors):
             g = rows[j]
             x, y, z, inv = _direction(means, g, cx, cy, cz)
             _sh_basis(x, y, z, degree, b, db, False)
-            for c in range(3):
-                v = _C0 * float(sh_dc[g, 0, c])
-                for i in range(1, count):
-                    v += b[i] * float(sh_rest[g, i - 1, c])
-                colors[j, c] = max(v + 0.5, 0.0)
+            v0, v1, v2 = _sh_values(sh_dc, sh_rest, g, b, count)
+            colors[j, 0] = max(v0 + 0.5, 0.0)
+            colors[j, 1] = max(v1 + 0.5, 0.0)
+            colors[j, 2] = max(v2 + 0.5, 0.0)
 
 
 @njit(parallel=True, cache=True)
@@ -529,10 +544,9 @@ def _sh_backward(means, sh_dc, sh_rest, center, degree, slot, g_colors, g_means,
             gdx = 0.0
             gdy = 0.0
             gdz = 0.0
+            v0, v1, v2 = _sh_values(sh_dc, sh_rest, g, b, count)
             for c in range(3):
-                v = _C0 * float(sh_dc[g, 0, c])
-                for i in range(1, count):
-                    v += b[i] * float(sh_rest[g, i - 1, c])
+                v = v0 if c == 0 else (v1 if c == 1 else v2)
                 gv = float(g_colors[j, c]) if v + 0.5 >= 0.0 else 0.0  # clamp_min passes ties
                 g_dc[g, 0, c] = _C0 * gv
                 for i in range(1, count):
