@@ -407,7 +407,6 @@ def fused_ssim(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 # gathered to each pixel's point from its four neighbours' differences, then dL/ddepth = <ray, dL/dP>.
 
 _NORMALIZE_EPS = 1e-12  # torch.nn.functional.normalize's default
-_NUMPY_DTYPE = {torch.float32: np.float32, torch.float64: np.float64}
 
 
 @njit(parallel=True, cache=True)
@@ -536,11 +535,10 @@ class _FusedNormalConsistency(torch.autograd.Function):
         # the gradients are computed in float64 and stored in the inputs' dtypes: numba's store rounds
         # to nearest as torch's .to() did on the float64 maps, without the two extra passes
         rdt, ddt = ctx.dtypes
-        g_rn = np.empty((h, w, 3), _NUMPY_DTYPE[rdt])
-        g_dp = np.empty((h, w), _NUMPY_DTYPE[ddt])
-        _normal_backward(rn, dp, al, rx, ry, normals, clen, float(g_out) / (h * w), g_rn, g_dp,
+        g_rn, g_dp = torch.empty((h, w, 3), dtype=rdt), torch.empty((h, w), dtype=ddt)
+        _normal_backward(rn, dp, al, rx, ry, normals, clen, float(g_out) / (h * w), g_rn.numpy(), g_dp.numpy(),
                          np.empty((h, w, 3), np.float64), np.empty((h, w, 3), np.float64))
-        return torch.from_numpy(g_rn), torch.from_numpy(g_dp), None, None
+        return g_rn, g_dp, None, None
 
 
 def fused_normal_consistency_applies(rendered_normal: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor) -> bool:
