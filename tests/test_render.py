@@ -186,9 +186,12 @@ class TestKernelAgainstReference:
             err = rel_err(grads_k[name], g)
             assert err <= 1e-3, f"gradient of {name}: relative error {err:.2e}"
 
-    def test_many_channels(self):
-        splats, camera, features = make_scene(5, n=60, channels=37)
-        background = torch.rand(37, generator=torch.Generator().manual_seed(0))
+    @pytest.mark.parametrize("channels", [5, 37])
+    def test_many_channels(self, channels):
+        # with the 3 normal channels: 8 (the backward's one-pass case, every fixed plane in use) and 40
+        # (the two-pass case, channels past the first 8)
+        splats, camera, features = make_scene(5, n=60, channels=channels)
+        background = torch.rand(channels, generator=torch.Generator().manual_seed(0))
         out_r, grads_r = run_backend(splats, camera, features, background, "reference")
         out_k, grads_k = run_backend(splats, camera, features, background, "numba")
         assert float((out_k.features - out_r.features).detach().abs().max()) <= 1e-4

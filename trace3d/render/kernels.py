@@ -24,7 +24,8 @@ splat by splat: for each row of the splat's footprint box inside the tile, pass 
 the box.  Forward, backward and trace share :func:`eval_lane`, so they make bit-identical skip
 decisions.  The backward walks each tile's list
 back to front, recovering the transmittance by division and keeping, per pixel, the running
-"what comes after" dot product.  Tiles run in parallel (``prange``); gradients go to one buffer per
+"what comes after" dot product; per splat row it computes every lane's gradient terms branch-free
+(vectorised) and then adds them into the splat's sums lane by lane, in the scalar order.  Tiles run in parallel (``prange``); gradients go to one buffer per
 worker chunk (tiles are dealt round-robin to chunks), summed afterwards: race-free and
 deterministic.
 """
@@ -424,10 +425,133 @@ def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, ne
 # ----------------------------------------------------------------------------------------------
 
 
+# field offsets in the backward kernel's flat tile buffer, one TILE_PIXELS plane each: the pixel's
+# transmittance before the splats still to come, the running "what comes after" sum, its last blended
+# list position (tile-relative, + 1), reference depth, upstream v_z, v_z2, v_final_t * final_t, median
+# splat (tile-relative, -1 none) and v_median; then, for the current splat row, whether the pair was
+# blended, its weight and its terms of the splat's gradient sums; then the per-lane values kept between
+# the two passes when there are more than 8 channels; then one plane per channel of the upstream v_acc
+B_TRANS = np.uint64(0 * TILE_PIXELS)
+B_AFTER = np.uint64(1 * TILE_PIXELS)
+B_LAST = np.uint64(2 * TILE_PIXELS)
+B_REF = np.uint64(3 * TILE_PIXELS)
+B_VZ = np.uint64(4 * TILE_PIXELS)
+B_VZ2 = np.uint64(5 * TILE_PIXELS)
+B_VFT = np.uint64(6 * TILE_PIXELS)
+B_MED = np.uint64(7 * TILE_PIXELS)
+B_VMED = np.uint64(8 * TILE_PIXELS)
+B_LIVE = np.uint64(9 * TILE_PIXELS)
+B_W = np.uint64(10 * TILE_PIXELS)  # 0 where the pair was not blended
+B_TOP = np.uint64(11 * TILE_PIXELS)  # the gradient-sum terms (0 where they do not apply)
+B_TTW0 = np.uint64(12 * TILE_PIXELS)
+B_TTW1 = np.uint64(13 * TILE_PIXELS)
+B_TTW2 = np.uint64(14 * TILE_PIXELS)
+B_TC0 = np.uint64(15 * TILE_PIXELS)
+B_TC1 = np.uint64(16 * TILE_PIXELS)
+B_TC2 = np.uint64(17 * TILE_PIXELS)
+B_TB0 = np.uint64(18 * TILE_PIXELS)
+B_TB1 = np.uint64(19 * TILE_PIXELS)
+B_TB2 = np.uint64(20 * TILE_PIXELS)
+B_TMX = np.uint64(21 * TILE_PIXELS)
+B_TMY = np.uint64(22 * TILE_PIXELS)
+B_A = np.uint64(23 * TILE_PIXELS)  # kept between the passes (more than 8 channels)
+B_Z = np.uint64(24 * TILE_PIXELS)
+B_U = np.uint64(25 * TILE_PIXELS)
+B_V_ = np.uint64(26 * TILE_PIXELS)
+B_INV = np.uint64(27 * TILE_PIXELS)
+B_DISK = np.uint64(28 * TILE_PIXELS)
+B_GAUSS = np.uint64(29 * TILE_PIXELS)
+B_TB = np.uint64(30 * TILE_PIXELS)
+B_IOM = np.uint64(31 * TILE_PIXELS)
+B_DZ = np.uint64(32 * TILE_PIXELS)
+B_DOT = np.uint64(33 * TILE_PIXELS)
+B_G0 = np.uint64(34 * TILE_PIXELS)  # upstream v_acc, one plane per channel (at least 8)
+B_G1 = np.uint64(35 * TILE_PIXELS)
+B_G2 = np.uint64(36 * TILE_PIXELS)
+B_G3 = np.uint64(37 * TILE_PIXELS)
+B_G4 = np.uint64(38 * TILE_PIXELS)
+B_G5 = np.uint64(39 * TILE_PIXELS)
+B_G6 = np.uint64(40 * TILE_PIXELS)
+B_G7 = np.uint64(41 * TILE_PIXELS)
+
+
+@njit(inline="always", fastmath=FASTMATH)
+def _lane_front(buf, p, i, x, lx0, lx1, jrel, e0, e1, e2, b0, b1, b2, mx, dy2, opac, tw0, tw1, tw2, near32,
+                v0, v1, v2, v3, v4, v5, v6, v7):
+    """One lane of a splat row in the backward, up to the dot product of the upstream gradient with the
+    splat's values over the first 8 channels (zero values and planes past K add nothing)."""
+    al, zz, uu, vv, iv, dk, gs = eval_lane(x, e0, e1, e2, b0, b1, b2, mx, dy2, opac, tw0, tw1, tw2, near32)
+    live = (i >= lx0) & (i < lx1) & (al != np.float32(0.0)) & (jrel < buf[B_LAST + p])
+    inv_one_minus = np.float32(1.0) / (np.float32(1.0) - al)
+    t_before = buf[B_TRANS + p] * inv_one_minus
+    dz = zz - buf[B_REF + p]
+    dot = buf[B_VZ + p] * zz + buf[B_VZ2 + p] * dz * dz
+    dot += buf[B_G0 + p] * v0
+    dot += buf[B_G1 + p] * v1
+    dot += buf[B_G2 + p] * v2
+    dot += buf[B_G3 + p] * v3
+    dot += buf[B_G4 + p] * v4
+    dot += buf[B_G5 + p] * v5
+    dot += buf[B_G6 + p] * v6
+    dot += buf[B_G7 + p] * v7
+    return live, al, zz, uu, vv, iv, dk, gs, t_before, inv_one_minus, dz, dot
+
+
+@njit(inline="always", fastmath=FASTMATH)
+def _lane_terms(buf, p, x, live, alpha, z, u, v, inv_c2, disk, gauss, t_before, inv_one_minus, dz, dot, jrel,
+                opac, tw0, tw1, mx, dy):
+    """The rest of one lane: the pixel's transmittance and "what comes after" sum move past the splat
+    where the pair was blended, and the lane's terms of the splat's gradient sums go to the buffer
+    (zero where a term does not apply), computed as the scalar backward computed them."""
+    zero = np.float32(0.0)
+    two = np.float32(2.0)
+    w = alpha * t_before
+    after = buf[B_AFTER + p]
+    g_alpha = t_before * dot - (after + buf[B_VFT + p]) * inv_one_minus
+    buf[B_AFTER + p] = after + w * dot if live else after
+    buf[B_TRANS + p] = t_before if live else buf[B_TRANS + p]
+    g_z = w * (buf[B_VZ + p] + two * dz * buf[B_VZ2 + p])
+    g_z = g_z + buf[B_VMED + p] if buf[B_MED + p] == jrel else g_z
+    unclamped = not opac * gauss > np.float32(ALPHA_MAX)
+    g_sigma = -g_alpha * alpha if unclamped else zero
+    on_disk = live & disk
+    on_filter = live & (not disk)
+    g_u = g_z * tw0 + g_sigma * u
+    g_v = g_z * tw1 + g_sigma * v
+    g_c0 = g_u * inv_c2
+    g_c1 = g_v * inv_c2
+    g_c2 = -(g_u * u + g_v * v) * inv_c2
+    dx = x - mx
+    buf[B_LIVE + p] = np.float32(1.0) if live else zero
+    buf[B_W + p] = w if live else zero
+    buf[B_TOP + p] = g_alpha * gauss if live & unclamped else zero
+    buf[B_TTW0 + p] = g_z * u if on_disk else zero
+    buf[B_TTW1 + p] = g_z * v if on_disk else zero
+    buf[B_TTW2 + p] = g_z if live else zero
+    buf[B_TC0 + p] = g_c0 if on_disk else zero
+    buf[B_TC1 + p] = g_c1 if on_disk else zero
+    buf[B_TC2 + p] = g_c2 if on_disk else zero
+    buf[B_TB0 + p] = g_c0 * x if on_disk else zero
+    buf[B_TB1 + p] = g_c1 * x if on_disk else zero
+    buf[B_TB2 + p] = g_c2 * x if on_disk else zero
+    buf[B_TMX + p] = two * dx * g_sigma if on_filter else zero
+    buf[B_TMY + p] = two * dy * g_sigma if on_filter else zero
+
+
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
 def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, near, n_chunks,
                     final_t, depth_ref, last, median_at, v_acc, v_z, v_z2, v_final_t, v_median):
     """Back-to-front gradients of every tile.
+
+    Per (splat, tile row), like the forward: pass 1 evaluates all 16 lanes of the row
+    (:func:`eval_lane`) and computes, with selects instead of branches, each lane's transmittance
+    before the splat, the upstream gradient's dot product with the splat's values, the pixel's state
+    moved past the splat and the lane's terms of the splat's gradient sums (vectorised: one flat tile
+    buffer at constant field offsets, unsigned indices); with more than 8 channels it stops after the
+    first 8 channels' dot product, the other channels are added one loop over the lanes each, and
+    pass 2 does the rest.  The last pass adds the terms into the splat's sums lane by lane in
+    ascending order, the order of the scalar loop this replaced (2026-11-26), so the sums are the same
+    bit for bit; a lane the splat did not blend adds zero terms, which leave a sum unchanged.
 
     Args:
         as :func:`forward_kernel`, plus its saved final_t, depth_ref, last, median_at [H, W] and
@@ -441,22 +565,14 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
     n_tiles = offsets.shape[0] - 1
     grads = np.zeros((n_chunks, n, n_cols), np.float32)
     near32 = np.float32(near)
-    one = np.float32(1.0)
-    two = np.float32(2.0)
+    zero = np.float32(0.0)
+    half = np.float32(0.5)
+    tp = TILE_PIXELS
+    n_planes = max(k_ch, 8)
     for chunk in prange(n_chunks):
         gbuf = grads[chunk]
-        trans = np.empty(TILE_PIXELS, np.float32)
-        after = np.empty(TILE_PIXELS, np.float32)  # running sum over later splats of w * dot
-        t_last = np.empty(TILE_PIXELS, np.int32)
-        g_vals = np.empty(k_ch, np.float32)
-        xs = np.empty(TILE, np.float32)
-        ra = np.zeros(TILE, np.float32)
-        rz = np.zeros(TILE, np.float32)
-        ru = np.zeros(TILE, np.float32)
-        rv = np.zeros(TILE, np.float32)
-        rinv = np.zeros(TILE, np.float32)
-        rdisk = np.zeros(TILE, np.bool_)
-        rgauss = np.zeros(TILE, np.float32)
+        buf = np.zeros(B_G0 + np.uint64(n_planes * tp), np.float32)
+        g_vals = np.zeros(k_ch, np.float32)
         for t in range(chunk, n_tiles, n_chunks):
             start = offsets[t]
             end = offsets[t + 1]
@@ -466,131 +582,167 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
             py0 = (t // tiles_x) * TILE
             px1 = min(px0 + TILE, width)
             py1 = min(py0 + TILE, height)
-            for i in range(TILE):
-                xs[i] = np.float32(px0 + i) + np.float32(0.5)
+            # the tile's pixels (those outside the image stay zero: never blended)
+            buf[:B_VMED + np.uint64(tp)] = 0.0
+            buf[B_G0:B_G0 + np.uint64(k_ch * tp)] = 0.0
             max_last = 0
-            for p in range(TILE_PIXELS):
-                t_last[p] = 0
-                trans[p] = one
-                after[p] = 0
             for py in range(py0, py1):
                 for px in range(px0, px1):
-                    p = (py - py0) * TILE + (px - px0)
-                    t_last[p] = last[py, px]
-                    trans[p] = final_t[py, px]
-                    if t_last[p] > max_last:
-                        max_last = t_last[p]
+                    p = np.uint64((py - py0) * TILE + (px - px0))
+                    lp = last[py, px]
+                    if lp > max_last:
+                        max_last = lp
+                    buf[B_TRANS + p] = final_t[py, px]
+                    buf[B_LAST + p] = np.float32(max(lp - start, 0))
+                    buf[B_REF + p] = depth_ref[py, px]
+                    buf[B_VZ + p] = v_z[py, px]
+                    buf[B_VZ2 + p] = v_z2[py, px]
+                    buf[B_VFT + p] = v_final_t[py, px] * final_t[py, px]
+                    mp = median_at[py, px]
+                    buf[B_MED + p] = np.float32(mp - start) if mp >= start else np.float32(-1.0)
+                    buf[B_VMED + p] = v_median[py, px]
+                    for ch in range(k_ch):
+                        buf[B_G0 + np.uint64(ch * tp) + p] = v_acc[py, px, ch]
             for j in range(max_last - 1, start - 1, -1):
                 g = lists[j]
-                x0 = max(ebox[j, 0], px0)
-                x1 = min(ebox[j, 2], px1)
+                lx0 = max(ebox[j, 0], px0) - px0
+                lx1 = min(ebox[j, 2], px1) - px0
                 y0 = max(ebox[j, 1], py0)
                 y1 = min(ebox[j, 3], py1)
+                jrel = np.float32(j - start)
                 a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2, mx, my, opac = splat_geometry(egeom, j)
+                v0 = vals[g, 0] if k_ch > 0 else zero
+                v1 = vals[g, 1] if k_ch > 1 else zero
+                v2 = vals[g, 2] if k_ch > 2 else zero
+                v3 = vals[g, 3] if k_ch > 3 else zero
+                v4 = vals[g, 4] if k_ch > 4 else zero
+                v5 = vals[g, 5] if k_ch > 5 else zero
+                v6 = vals[g, 6] if k_ch > 6 else zero
+                v7 = vals[g, 7] if k_ch > 7 else zero
                 # per-splat gradient sums over this tile
-                ga0 = np.float32(0.0)
-                ga1 = np.float32(0.0)
-                ga2 = np.float32(0.0)
-                gb0 = np.float32(0.0)
-                gb1 = np.float32(0.0)
-                gb2 = np.float32(0.0)
-                gd0 = np.float32(0.0)
-                gd1 = np.float32(0.0)
-                gd2 = np.float32(0.0)
-                gtw0 = np.float32(0.0)
-                gtw1 = np.float32(0.0)
-                gtw2 = np.float32(0.0)
-                gmx = np.float32(0.0)
-                gmy = np.float32(0.0)
-                gop = np.float32(0.0)
-                for ch in range(k_ch):
+                ga0 = zero
+                ga1 = zero
+                ga2 = zero
+                gb0 = zero
+                gb1 = zero
+                gb2 = zero
+                gd0 = zero
+                gd1 = zero
+                gd2 = zero
+                gtw0 = zero
+                gtw1 = zero
+                gtw2 = zero
+                gmx = zero
+                gmy = zero
+                gop = zero
+                gv0 = zero
+                gv1 = zero
+                gv2 = zero
+                gv3 = zero
+                gv4 = zero
+                gv5 = zero
+                gv6 = zero
+                gv7 = zero
+                for ch in range(8, k_ch):
                     g_vals[ch] = 0
                 touched = False
                 for py in range(y0, y1):
-                    row = (py - py0) * TILE
+                    row = np.uint64((py - py0) * TILE)
                     # skip rows where this splat was blended into no pixel
-                    live = False
-                    for px in range(x0 - px0, x1 - px0):
-                        if j < t_last[row + px]:
-                            live = True
+                    live_row = False
+                    for i in range(lx0, lx1):
+                        if jrel < buf[B_LAST + row + np.uint64(i)]:
+                            live_row = True
                             break
-                    if not live:
+                    if not live_row:
                         continue
-                    y = np.float32(py) + np.float32(0.5)
+                    touched = True
+                    y = np.float32(py) + half
                     e0 = a0 + d0 * y
                     e1 = a1 + d1 * y
                     e2 = a2 + d2 * y
                     dy = y - my
                     dy2 = dy * dy
-                    for i in range(TILE):
-                        al, zz, uu, vv, iv, dk, gs = eval_lane(xs[i], e0, e1, e2, b0, b1, b2, mx, dy2, opac,
-                                                               tw0, tw1, tw2, near32)
-                        ra[i] = al
-                        rz[i] = zz
-                        ru[i] = uu
-                        rv[i] = vv
-                        rinv[i] = iv
-                        rdisk[i] = dk
-                        rgauss[i] = gs
-                    rc0 = np.float32(0.0)
-                    rc1 = np.float32(0.0)
-                    rc2 = np.float32(0.0)
-                    for px in range(x0 - px0, x1 - px0):
-                        alpha = ra[px]
-                        if alpha == np.float32(0.0):
-                            continue
-                        p = row + px
-                        if j >= t_last[p]:
-                            continue
-                        ix = px0 + px
-                        x = xs[px]
-                        z = rz[px]
-                        u = ru[px]
-                        v = rv[px]
-                        touched = True
-                        inv_one_minus = one / (one - alpha)
-                        t_before = trans[p] * inv_one_minus
-                        w = alpha * t_before
-                        # dot of the upstream gradient with this splat's per-pixel values
-                        dz = z - depth_ref[py, ix]
-                        vz = v_z[py, ix]
-                        vz2 = v_z2[py, ix]
-                        dot = vz * z + vz2 * dz * dz
-                        for ch in range(k_ch):
-                            vg = v_acc[py, ix, ch]
-                            dot += vg * vals[g, ch]
-                            g_vals[ch] += w * vg
-                        g_alpha = t_before * dot - (after[p] + v_final_t[py, ix] * final_t[py, ix]) * inv_one_minus
-                        after[p] += w * dot
-                        trans[p] = t_before
-                        g_z = w * (vz + two * dz * vz2)
-                        if median_at[py, ix] == j:
-                            g_z += v_median[py, ix]
-                        g_sigma = np.float32(0.0)
-                        if not opac * rgauss[px] > np.float32(ALPHA_MAX):
-                            gop += g_alpha * rgauss[px]
-                            g_sigma = -g_alpha * alpha
-                        if rdisk[px]:
-                            g_u = g_z * tw0 + g_sigma * u
-                            g_v = g_z * tw1 + g_sigma * v
-                            gtw0 += g_z * u
-                            gtw1 += g_z * v
-                            gtw2 += g_z
-                            inv_c2 = rinv[px]
-                            g_c0 = g_u * inv_c2
-                            g_c1 = g_v * inv_c2
-                            g_c2 = -(g_u * u + g_v * v) * inv_c2
-                            rc0 += g_c0
-                            rc1 += g_c1
-                            rc2 += g_c2
-                            gb0 += g_c0 * x
-                            gb1 += g_c1 * x
-                            gb2 += g_c2 * x
-                        else:
-                            gtw2 += g_z
-                            dx = x - mx
-                            gmx -= two * dx * g_sigma
-                            gmy -= two * dy * g_sigma
+                    if k_ch <= 8:
+                        # pass 1, whole
+                        for i in range(TILE):
+                            p = row + np.uint64(i)
+                            x = np.float32(px0 + i) + half
+                            live, al, zz, uu, vv, iv, dk, gs, tb, iom, dz, dot = _lane_front(
+                                buf, p, i, x, lx0, lx1, jrel, e0, e1, e2, b0, b1, b2, mx, dy2, opac, tw0, tw1,
+                                tw2, near32, v0, v1, v2, v3, v4, v5, v6, v7)
+                            _lane_terms(buf, p, x, live, al, zz, uu, vv, iv, dk, gs, tb, iom, dz, dot, jrel, opac,
+                                        tw0, tw1, mx, dy)
+                    else:
+                        # pass 1 up to the first 8 channels' dot product
+                        for i in range(TILE):
+                            p = row + np.uint64(i)
+                            x = np.float32(px0 + i) + half
+                            live, al, zz, uu, vv, iv, dk, gs, tb, iom, dz, dot = _lane_front(
+                                buf, p, i, x, lx0, lx1, jrel, e0, e1, e2, b0, b1, b2, mx, dy2, opac, tw0, tw1,
+                                tw2, near32, v0, v1, v2, v3, v4, v5, v6, v7)
+                            buf[B_LIVE + p] = np.float32(1.0) if live else zero
+                            buf[B_A + p] = al
+                            buf[B_Z + p] = zz
+                            buf[B_U + p] = uu
+                            buf[B_V_ + p] = vv
+                            buf[B_INV + p] = iv
+                            buf[B_DISK + p] = np.float32(1.0) if dk else zero
+                            buf[B_GAUSS + p] = gs
+                            buf[B_TB + p] = tb
+                            buf[B_IOM + p] = iom
+                            buf[B_DZ + p] = dz
+                            buf[B_DOT + p] = dot
+                        # the other channels' dot products, in channel order
+                        for ch in range(8, k_ch):
+                            v_ch = vals[g, ch]
+                            plane = B_G0 + np.uint64(ch * tp)
+                            for i in range(TILE):
+                                p = row + np.uint64(i)
+                                buf[B_DOT + p] += buf[plane + p] * v_ch
+                        # pass 2
+                        for i in range(TILE):
+                            p = row + np.uint64(i)
+                            x = np.float32(px0 + i) + half
+                            _lane_terms(buf, p, x, buf[B_LIVE + p] != zero, buf[B_A + p], buf[B_Z + p],
+                                        buf[B_U + p], buf[B_V_ + p], buf[B_INV + p], buf[B_DISK + p] != zero,
+                                        buf[B_GAUSS + p], buf[B_TB + p], buf[B_IOM + p], buf[B_DZ + p],
+                                        buf[B_DOT + p], jrel, opac, tw0, tw1, mx, dy)
+                    # the sums, lane by lane in ascending order
+                    rc0 = zero
+                    rc1 = zero
+                    rc2 = zero
+                    for i in range(lx0, lx1):
+                        p = row + np.uint64(i)
+                        gop += buf[B_TOP + p]
+                        gtw0 += buf[B_TTW0 + p]
+                        gtw1 += buf[B_TTW1 + p]
+                        gtw2 += buf[B_TTW2 + p]
+                        rc0 += buf[B_TC0 + p]
+                        rc1 += buf[B_TC1 + p]
+                        rc2 += buf[B_TC2 + p]
+                        gb0 += buf[B_TB0 + p]
+                        gb1 += buf[B_TB1 + p]
+                        gb2 += buf[B_TB2 + p]
+                        gmx -= buf[B_TMX + p]
+                        gmy -= buf[B_TMY + p]
+                        live = buf[B_LIVE + p] != zero
+                        w = buf[B_W + p]
+                        gv0 += w * buf[B_G0 + p] if live else zero
+                        gv1 += w * buf[B_G1 + p] if live else zero
+                        gv2 += w * buf[B_G2 + p] if live else zero
+                        gv3 += w * buf[B_G3 + p] if live else zero
+                        gv4 += w * buf[B_G4 + p] if live else zero
+                        gv5 += w * buf[B_G5 + p] if live else zero
+                        gv6 += w * buf[B_G6 + p] if live else zero
+                        gv7 += w * buf[B_G7 + p] if live else zero
+                    for ch in range(8, k_ch):
+                        plane = B_G0 + np.uint64(ch * tp)
+                        acc = g_vals[ch]
+                        for i in range(lx0, lx1):
+                            p = row + np.uint64(i)
+                            acc += buf[B_W + p] * buf[plane + p] if buf[B_LIVE + p] != zero else zero
+                        g_vals[ch] = acc
                     ga0 += rc0
                     ga1 += rc1
                     ga2 += rc2
@@ -613,7 +765,23 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
                     gbuf[g, 12] += gmx
                     gbuf[g, 13] += gmy
                     gbuf[g, 14] += gop
-                    for ch in range(k_ch):
+                    if k_ch > 0:
+                        gbuf[g, GEOM_GRAD_COLS] += gv0
+                    if k_ch > 1:
+                        gbuf[g, GEOM_GRAD_COLS + 1] += gv1
+                    if k_ch > 2:
+                        gbuf[g, GEOM_GRAD_COLS + 2] += gv2
+                    if k_ch > 3:
+                        gbuf[g, GEOM_GRAD_COLS + 3] += gv3
+                    if k_ch > 4:
+                        gbuf[g, GEOM_GRAD_COLS + 4] += gv4
+                    if k_ch > 5:
+                        gbuf[g, GEOM_GRAD_COLS + 5] += gv5
+                    if k_ch > 6:
+                        gbuf[g, GEOM_GRAD_COLS + 6] += gv6
+                    if k_ch > 7:
+                        gbuf[g, GEOM_GRAD_COLS + 7] += gv7
+                    for ch in range(8, k_ch):
                         gbuf[g, GEOM_GRAD_COLS + ch] += g_vals[ch]
     return grads
 
