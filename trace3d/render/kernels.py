@@ -24,8 +24,7 @@ splat by splat: for each row of the splat's footprint box inside the tile, pass 
 the box.  Forward, backward and trace share :func:`eval_lane`, so they make bit-identical skip
 decisions.  The backward walks each tile's list
 back to front, recovering the transmittance by division and keeping, per pixel, the running
-"what comes after" dot product; per splat row it computes every lane's gradient terms branch-free
-(vectorised) and then adds them into the splat's sums lane by lane, in the scalar order.  Tiles run in parallel (``prange``); gradients go to one buffer per
+"what comes after" dot product.  Tiles run in parallel (``prange``); gradients go to one buffer per
 worker chunk (tiles are dealt round-robin to chunks), summed afterwards: race-free and
 deterministic.
 """
@@ -543,15 +542,18 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
                     final_t, depth_ref, last, median_at, v_acc, v_z, v_z2, v_final_t, v_median):
     """Back-to-front gradients of every tile.
 
-    Per (splat, tile row), like the forward: pass 1 evaluates all 16 lanes of the row
-    (:func:`eval_lane`) and computes, with selects instead of branches, each lane's transmittance
-    before the splat, the upstream gradient's dot product with the splat's values, the pixel's state
-    moved past the splat and the lane's terms of the splat's gradient sums (vectorised: one flat tile
-    buffer at constant field offsets, unsigned indices); with more than 8 channels it stops after the
-    first 8 channels' dot product, the other channels are added one loop over the lanes each, and
-    pass 2 does the rest.  The last pass adds the terms into the splat's sums lane by lane in
-    ascending order, the order of the scalar loop this replaced (2026-11-26), so the sums are the same
-    bit for bit; a lane the splat did not blend adds zero terms, which leave a sum unchanged.
+    Per (splat, tile): first the tile rows where the splat was blended into some pixel; then one
+    vector loop over every lane of those rows (the lanes are independent, so rows overlap in the
+    pipeline) evaluates the pair (:func:`eval_lane`) and computes, with selects instead of branches,
+    the transmittance before the splat, the upstream gradient's dot product with the splat's values,
+    the pixel's state moved past the splat and the lane's terms of the splat's gradient sums (one flat
+    tile buffer at constant field offsets, unsigned indices, as in the forward); with more than 8
+    channels that loop stops after the first 8 channels' dot product, the other channels are added one
+    loop each and a second loop does the rest.  Then, row by row, the terms are added into the splat's
+    sums lane by lane in ascending order: the order of the scalar loop this replaced (2026-11-26), so
+    the sums are the same bit for bit (a lane the splat did not blend adds zero terms, which leave a
+    sum unchanged; the channels' sums skip it, so a non-finite upstream gradient there is ignored as
+    before).
 
     Args:
         as :func:`forward_kernel`, plus its saved final_t, depth_ref, last, median_at [H, W] and
@@ -573,6 +575,7 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
         gbuf = grads[chunk]
         buf = np.zeros(B_G0 + np.uint64(n_planes * tp), np.float32)
         g_vals = np.zeros(k_ch, np.float32)
+        rows_live = np.zeros(TILE, np.bool_)
         for t in range(chunk, n_tiles, n_chunks):
             start = offsets[t]
             end = offsets[t + 1]
@@ -645,70 +648,84 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
                 gv7 = zero
                 for ch in range(8, k_ch):
                     g_vals[ch] = 0
-                touched = False
-                for py in range(y0, y1):
-                    row = np.uint64((py - py0) * TILE)
-                    # skip rows where this splat was blended into no pixel
+                # the rows of the tile where this splat was blended into some pixel
+                r_first = -1
+                r_last = -1
+                for r in range(y0 - py0, y1 - py0):
+                    row = np.uint64(r * TILE)
                     live_row = False
                     for i in range(lx0, lx1):
                         if jrel < buf[B_LAST + row + np.uint64(i)]:
                             live_row = True
                             break
-                    if not live_row:
+                    rows_live[r] = live_row
+                    if live_row:
+                        r_last = r
+                        if r_first < 0:
+                            r_first = r
+                if r_first < 0:
+                    continue
+                # every lane of those rows at once (independent lanes: the vector loop overlaps rows)
+                q0 = r_first * TILE
+                q1 = (r_last + 1) * TILE
+                if k_ch <= 8:
+                    # pass 1, whole
+                    for q in range(q0, q1):
+                        p = np.uint64(q)
+                        i = q & (TILE - 1)
+                        x = np.float32(px0 + i) + half
+                        y = np.float32(py0 + (q >> 4)) + half
+                        dy = y - my
+                        live, al, zz, uu, vv, iv, dk, gs, tb, iom, dz, dot = _lane_front(
+                            buf, p, i, x, lx0, lx1, jrel, a0 + d0 * y, a1 + d1 * y, a2 + d2 * y, b0, b1, b2, mx,
+                            dy * dy, opac, tw0, tw1, tw2, near32, v0, v1, v2, v3, v4, v5, v6, v7)
+                        _lane_terms(buf, p, x, live, al, zz, uu, vv, iv, dk, gs, tb, iom, dz, dot, jrel, opac,
+                                    tw0, tw1, mx, dy)
+                else:
+                    # pass 1 up to the first 8 channels' dot product
+                    for q in range(q0, q1):
+                        p = np.uint64(q)
+                        i = q & (TILE - 1)
+                        x = np.float32(px0 + i) + half
+                        y = np.float32(py0 + (q >> 4)) + half
+                        dy = y - my
+                        live, al, zz, uu, vv, iv, dk, gs, tb, iom, dz, dot = _lane_front(
+                            buf, p, i, x, lx0, lx1, jrel, a0 + d0 * y, a1 + d1 * y, a2 + d2 * y, b0, b1, b2, mx,
+                            dy * dy, opac, tw0, tw1, tw2, near32, v0, v1, v2, v3, v4, v5, v6, v7)
+                        buf[B_LIVE + p] = np.float32(1.0) if live else zero
+                        buf[B_A + p] = al
+                        buf[B_Z + p] = zz
+                        buf[B_U + p] = uu
+                        buf[B_V_ + p] = vv
+                        buf[B_INV + p] = iv
+                        buf[B_DISK + p] = np.float32(1.0) if dk else zero
+                        buf[B_GAUSS + p] = gs
+                        buf[B_TB + p] = tb
+                        buf[B_IOM + p] = iom
+                        buf[B_DZ + p] = dz
+                        buf[B_DOT + p] = dot
+                    # the other channels' dot products, in channel order
+                    for ch in range(8, k_ch):
+                        v_ch = vals[g, ch]
+                        plane = B_G0 + np.uint64(ch * tp)
+                        for q in range(q0, q1):
+                            p = np.uint64(q)
+                            buf[B_DOT + p] += buf[plane + p] * v_ch
+                    # pass 2
+                    for q in range(q0, q1):
+                        p = np.uint64(q)
+                        x = np.float32(px0 + (q & (TILE - 1))) + half
+                        dy = (np.float32(py0 + (q >> 4)) + half) - my
+                        _lane_terms(buf, p, x, buf[B_LIVE + p] != zero, buf[B_A + p], buf[B_Z + p],
+                                    buf[B_U + p], buf[B_V_ + p], buf[B_INV + p], buf[B_DISK + p] != zero,
+                                    buf[B_GAUSS + p], buf[B_TB + p], buf[B_IOM + p], buf[B_DZ + p],
+                                    buf[B_DOT + p], jrel, opac, tw0, tw1, mx, dy)
+                # the sums, row by row and lane by lane in ascending order
+                for r in range(r_first, r_last + 1):
+                    if not rows_live[r]:
                         continue
-                    touched = True
-                    y = np.float32(py) + half
-                    e0 = a0 + d0 * y
-                    e1 = a1 + d1 * y
-                    e2 = a2 + d2 * y
-                    dy = y - my
-                    dy2 = dy * dy
-                    if k_ch <= 8:
-                        # pass 1, whole
-                        for i in range(TILE):
-                            p = row + np.uint64(i)
-                            x = np.float32(px0 + i) + half
-                            live, al, zz, uu, vv, iv, dk, gs, tb, iom, dz, dot = _lane_front(
-                                buf, p, i, x, lx0, lx1, jrel, e0, e1, e2, b0, b1, b2, mx, dy2, opac, tw0, tw1,
-                                tw2, near32, v0, v1, v2, v3, v4, v5, v6, v7)
-                            _lane_terms(buf, p, x, live, al, zz, uu, vv, iv, dk, gs, tb, iom, dz, dot, jrel, opac,
-                                        tw0, tw1, mx, dy)
-                    else:
-                        # pass 1 up to the first 8 channels' dot product
-                        for i in range(TILE):
-                            p = row + np.uint64(i)
-                            x = np.float32(px0 + i) + half
-                            live, al, zz, uu, vv, iv, dk, gs, tb, iom, dz, dot = _lane_front(
-                                buf, p, i, x, lx0, lx1, jrel, e0, e1, e2, b0, b1, b2, mx, dy2, opac, tw0, tw1,
-                                tw2, near32, v0, v1, v2, v3, v4, v5, v6, v7)
-                            buf[B_LIVE + p] = np.float32(1.0) if live else zero
-                            buf[B_A + p] = al
-                            buf[B_Z + p] = zz
-                            buf[B_U + p] = uu
-                            buf[B_V_ + p] = vv
-                            buf[B_INV + p] = iv
-                            buf[B_DISK + p] = np.float32(1.0) if dk else zero
-                            buf[B_GAUSS + p] = gs
-                            buf[B_TB + p] = tb
-                            buf[B_IOM + p] = iom
-                            buf[B_DZ + p] = dz
-                            buf[B_DOT + p] = dot
-                        # the other channels' dot products, in channel order
-                        for ch in range(8, k_ch):
-                            v_ch = vals[g, ch]
-                            plane = B_G0 + np.uint64(ch * tp)
-                            for i in range(TILE):
-                                p = row + np.uint64(i)
-                                buf[B_DOT + p] += buf[plane + p] * v_ch
-                        # pass 2
-                        for i in range(TILE):
-                            p = row + np.uint64(i)
-                            x = np.float32(px0 + i) + half
-                            _lane_terms(buf, p, x, buf[B_LIVE + p] != zero, buf[B_A + p], buf[B_Z + p],
-                                        buf[B_U + p], buf[B_V_ + p], buf[B_INV + p], buf[B_DISK + p] != zero,
-                                        buf[B_GAUSS + p], buf[B_TB + p], buf[B_IOM + p], buf[B_DZ + p],
-                                        buf[B_DOT + p], jrel, opac, tw0, tw1, mx, dy)
-                    # the sums, lane by lane in ascending order
+                    row = np.uint64(r * TILE)
+                    y = np.float32(py0 + r) + half
                     rc0 = zero
                     rc1 = zero
                     rc2 = zero
@@ -736,53 +753,53 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
                         gv5 += w * buf[B_G5 + p] if live else zero
                         gv6 += w * buf[B_G6 + p] if live else zero
                         gv7 += w * buf[B_G7 + p] if live else zero
-                    for ch in range(8, k_ch):
-                        plane = B_G0 + np.uint64(ch * tp)
-                        acc = g_vals[ch]
+                    if k_ch > 8:
+                        # channels past the first 8: per blended lane, all of them (contiguous upstream)
                         for i in range(lx0, lx1):
                             p = row + np.uint64(i)
-                            acc += buf[B_W + p] * buf[plane + p] if buf[B_LIVE + p] != zero else zero
-                        g_vals[ch] = acc
+                            if buf[B_LIVE + p] != zero:
+                                w = buf[B_W + p]
+                                for ch in range(8, k_ch):
+                                    g_vals[ch] += w * v_acc[py0 + r, px0 + i, ch]
                     ga0 += rc0
                     ga1 += rc1
                     ga2 += rc2
                     gd0 += rc0 * y
                     gd1 += rc1 * y
                     gd2 += rc2 * y
-                if touched:
-                    gbuf[g, 0] += ga0
-                    gbuf[g, 1] += ga1
-                    gbuf[g, 2] += ga2
-                    gbuf[g, 3] += gb0
-                    gbuf[g, 4] += gb1
-                    gbuf[g, 5] += gb2
-                    gbuf[g, 6] += gd0
-                    gbuf[g, 7] += gd1
-                    gbuf[g, 8] += gd2
-                    gbuf[g, 9] += gtw0
-                    gbuf[g, 10] += gtw1
-                    gbuf[g, 11] += gtw2
-                    gbuf[g, 12] += gmx
-                    gbuf[g, 13] += gmy
-                    gbuf[g, 14] += gop
-                    if k_ch > 0:
-                        gbuf[g, GEOM_GRAD_COLS] += gv0
-                    if k_ch > 1:
-                        gbuf[g, GEOM_GRAD_COLS + 1] += gv1
-                    if k_ch > 2:
-                        gbuf[g, GEOM_GRAD_COLS + 2] += gv2
-                    if k_ch > 3:
-                        gbuf[g, GEOM_GRAD_COLS + 3] += gv3
-                    if k_ch > 4:
-                        gbuf[g, GEOM_GRAD_COLS + 4] += gv4
-                    if k_ch > 5:
-                        gbuf[g, GEOM_GRAD_COLS + 5] += gv5
-                    if k_ch > 6:
-                        gbuf[g, GEOM_GRAD_COLS + 6] += gv6
-                    if k_ch > 7:
-                        gbuf[g, GEOM_GRAD_COLS + 7] += gv7
-                    for ch in range(8, k_ch):
-                        gbuf[g, GEOM_GRAD_COLS + ch] += g_vals[ch]
+                gbuf[g, 0] += ga0
+                gbuf[g, 1] += ga1
+                gbuf[g, 2] += ga2
+                gbuf[g, 3] += gb0
+                gbuf[g, 4] += gb1
+                gbuf[g, 5] += gb2
+                gbuf[g, 6] += gd0
+                gbuf[g, 7] += gd1
+                gbuf[g, 8] += gd2
+                gbuf[g, 9] += gtw0
+                gbuf[g, 10] += gtw1
+                gbuf[g, 11] += gtw2
+                gbuf[g, 12] += gmx
+                gbuf[g, 13] += gmy
+                gbuf[g, 14] += gop
+                if k_ch > 0:
+                    gbuf[g, GEOM_GRAD_COLS] += gv0
+                if k_ch > 1:
+                    gbuf[g, GEOM_GRAD_COLS + 1] += gv1
+                if k_ch > 2:
+                    gbuf[g, GEOM_GRAD_COLS + 2] += gv2
+                if k_ch > 3:
+                    gbuf[g, GEOM_GRAD_COLS + 3] += gv3
+                if k_ch > 4:
+                    gbuf[g, GEOM_GRAD_COLS + 4] += gv4
+                if k_ch > 5:
+                    gbuf[g, GEOM_GRAD_COLS + 5] += gv5
+                if k_ch > 6:
+                    gbuf[g, GEOM_GRAD_COLS + 6] += gv6
+                if k_ch > 7:
+                    gbuf[g, GEOM_GRAD_COLS + 7] += gv7
+                for ch in range(8, k_ch):
+                    gbuf[g, GEOM_GRAD_COLS + ch] += g_vals[ch]
     return grads
 
 
