@@ -249,7 +249,7 @@ def eval_lane(x, e0, e1, e2, b0, b1, b2, mx, dy2, opac, tw0, tw1, tw2, near32):
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
-def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, near):
+def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, near, split, background, fold):
     """Front-to-back blending of every tile.
 
     Per (splat, tile row) both passes run over all 16 lanes of the row without branches, so that
@@ -266,16 +266,21 @@ def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, ne
         egeom: [E, 16] float32 geometry per tile-list entry (``geom`` gathered by ``lists``);
         ebox: [E, 4] int32 footprint boxes per entry; lists: [E] int32 splat of each entry;
         vals: [N, K] float32; offsets: [tiles + 1] int64.
+        split: the channels [:split] go to ``head``, the others to ``tail``; background [split]
+            float32, blended into ``head`` with the final transmittance when ``fold`` (as the
+            caller's torch line ``acc + final_t * background`` would, in its order).
     Returns:
-        acc [H, W, K], acc_z [H, W] (sum w z), acc_z2 [H, W] (sum w (z - z_ref)^2 with z_ref the
-        depth of the pixel's first blended splat, which keeps the distortion well conditioned),
+        head [H, W, split], tail [H, W, K - split] (the blended channels), acc_z [H, W] (sum w z),
+        acc_z2 [H, W] (sum w (z - z_ref)^2 with z_ref the depth of the pixel's first blended splat,
+        which keeps the distortion well conditioned),
         final_t [H, W], median_z [H, W], depth_ref [H, W] (z_ref), last [H, W] int32 (list
         position + 1 of the last blended splat, 0 if none), median_at [H, W] int32 (list position
         of the median splat, -1 if none), pairs [tiles] int64 (pixel-splat pairs evaluated).
     """
     k_ch = vals.shape[1]
     n_tiles = offsets.shape[0] - 1
-    acc = np.zeros((height, width, k_ch), np.float32)
+    head = np.zeros((height, width, split), np.float32)
+    tail = np.zeros((height, width, k_ch - split), np.float32)
     acc_z = np.zeros((height, width), np.float32)
     acc_z2 = np.zeros((height, width), np.float32)
     final_t = np.ones((height, width), np.float32)
@@ -297,12 +302,17 @@ def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, ne
     for t in prange(n_tiles):
         start = offsets[t]
         end = offsets[t + 1]
-        if start == end:
-            continue
         px0 = (t % tiles_x) * TILE
         py0 = (t // tiles_x) * TILE
         px1 = min(px0 + TILE, width)
         py1 = min(py0 + TILE, height)
+        if start == end:
+            if fold:  # nothing blended: the transmittance stays 1
+                for py in range(py0, py1):
+                    for px in range(px0, px1):
+                        for ch in range(split):
+                            head[py, px, ch] = zero + one * background[ch]
+            continue
         n_pix = (px1 - px0) * (py1 - py0)
         buf = np.zeros(F_ACC + max(k_ch, 8) * tp, np.float32)
         buf[:2 * tp] = 1.0  # transmittance 1, open
@@ -405,9 +415,13 @@ def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, ne
         for py in range(py0, py1):
             for px in range(px0, px1):
                 p = (py - py0) * TILE + (px - px0)
-                for ch in range(k_ch):
-                    acc[py, px, ch] = buf[F_ACC + ch * tp + p]
-                final_t[py, px] = buf[p]
+                t_final = buf[p]
+                for ch in range(split):
+                    a = buf[F_ACC + ch * tp + p]
+                    head[py, px, ch] = a + t_final * background[ch] if fold else a
+                for ch in range(split, k_ch):
+                    tail[py, px, ch - split] = buf[F_ACC + ch * tp + p]
+                final_t[py, px] = t_final
                 acc_z[py, px] = buf[2 * tp + p]
                 acc_z2[py, px] = buf[3 * tp + p]
                 median_z[py, px] = buf[4 * tp + p]
@@ -416,7 +430,7 @@ def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, ne
                 last[py, px] = start + lp if lp > 0 else 0
                 mp = np.int64(buf[7 * tp + p])
                 median_at[py, px] = start + mp if mp >= 0 else -1
-    return acc, acc_z, acc_z2, final_t, median_z, depth_ref, last, median_at, pairs
+    return head, tail, acc_z, acc_z2, final_t, median_z, depth_ref, last, median_at, pairs
 
 
 # ----------------------------------------------------------------------------------------------
@@ -429,7 +443,8 @@ def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, ne
 # list position (tile-relative, + 1), reference depth, upstream v_z, v_z2, v_final_t * final_t, median
 # splat (tile-relative, -1 none) and v_median; then, for the current splat row, whether the pair was
 # blended, its weight and its terms of the splat's gradient sums; then the per-lane values kept between
-# the two passes when there are more than 8 channels; then one plane per channel of the upstream v_acc
+# the two passes when there are more than 8 channels; then one plane per channel of the upstream gradient
+# of the blended channels
 B_TRANS = np.uint64(0 * TILE_PIXELS)
 B_AFTER = np.uint64(1 * TILE_PIXELS)
 B_LAST = np.uint64(2 * TILE_PIXELS)
@@ -464,7 +479,7 @@ B_TB = np.uint64(30 * TILE_PIXELS)
 B_IOM = np.uint64(31 * TILE_PIXELS)
 B_DZ = np.uint64(32 * TILE_PIXELS)
 B_DOT = np.uint64(33 * TILE_PIXELS)
-B_G0 = np.uint64(34 * TILE_PIXELS)  # upstream v_acc, one plane per channel (at least 8)
+B_G0 = np.uint64(34 * TILE_PIXELS)  # upstream channel gradients, one plane per channel (at least 8)
 B_G1 = np.uint64(35 * TILE_PIXELS)
 B_G2 = np.uint64(36 * TILE_PIXELS)
 B_G3 = np.uint64(37 * TILE_PIXELS)
@@ -539,7 +554,7 @@ def _lane_terms(buf, p, x, live, alpha, z, u, v, inv_c2, disk, gauss, t_before, 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
 def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, near, n_chunks,
-                    final_t, depth_ref, last, median_at, v_acc, v_z, v_z2, v_final_t, v_median):
+                    final_t, depth_ref, last, median_at, v_head, v_tail, v_z, v_z2, v_final_t, v_median):
     """Back-to-front gradients of every tile.
 
     Per (splat, tile): first the tile rows where the splat was blended into some pixel; then one
@@ -557,7 +572,8 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
 
     Args:
         as :func:`forward_kernel`, plus its saved final_t, depth_ref, last, median_at [H, W] and
-        the upstream gradients v_acc [H, W, K], v_z, v_z2, v_final_t, v_median [H, W].
+        the upstream gradients of the blended channels v_head [H, W, S] and v_tail [H, W, K - S] (the
+        forward's head and tail), v_z, v_z2, v_final_t, v_median [H, W].
     Returns:
         grads [n_chunks, N, 15 + K] float32 (sum over axis 0): d/d geom[:, :15] then d/d vals.
     """
@@ -571,6 +587,7 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
     half = np.float32(0.5)
     tp = TILE_PIXELS
     n_planes = max(k_ch, 8)
+    n_head = v_head.shape[2]
     for chunk in prange(n_chunks):
         gbuf = grads[chunk]
         buf = np.zeros(B_G0 + np.uint64(n_planes * tp), np.float32)
@@ -604,8 +621,10 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
                     mp = median_at[py, px]
                     buf[B_MED + p] = np.float32(mp - start) if mp >= start else np.float32(-1.0)
                     buf[B_VMED + p] = v_median[py, px]
-                    for ch in range(k_ch):
-                        buf[B_G0 + np.uint64(ch * tp) + p] = v_acc[py, px, ch]
+                    for ch in range(n_head):
+                        buf[B_G0 + np.uint64(ch * tp) + p] = v_head[py, px, ch]
+                    for ch in range(n_head, k_ch):
+                        buf[B_G0 + np.uint64(ch * tp) + p] = v_tail[py, px, ch - n_head]
             for j in range(max_last - 1, start - 1, -1):
                 g = lists[j]
                 lx0 = max(ebox[j, 0], px0) - px0
@@ -760,7 +779,7 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
                             if buf[B_LIVE + p] != zero:
                                 w = buf[B_W + p]
                                 for ch in range(8, k_ch):
-                                    g_vals[ch] += w * v_acc[py0 + r, px0 + i, ch]
+                                    g_vals[ch] += w * buf[B_G0 + np.uint64(ch * tp) + p]
                     ga0 += rc0
                     ga1 += rc1
                     ga2 += rc2
@@ -1066,43 +1085,16 @@ def sum_chunks(grads):
 
 
 @njit(parallel=True, cache=True)
-def split_channels(acc, split, final_t, background, fold):
-    """[H, W, K] -> its channels [:split] and [split:] as two C-contiguous arrays (one parallel pass;
-    numpy's strided copy of a few channels is several times slower).  With ``fold`` the first part is
-    ``acc[..., :split] + final_t * background`` (the background blended in, as torch would add it)."""
-    h, w, k = acc.shape
-    head = np.empty((h, w, split), acc.dtype)
-    tail = np.empty((h, w, k - split), acc.dtype)
+def fold_background_grad(v_head, v_final_t, background):
+    """Add the blended background's share of the gradient to ``v_final_t`` in place:
+    ``((g_0 b_0 + g_1 b_1) + g_2 b_2)`` per pixel, in torch's order of its broadcast sum."""
+    h, w, split = v_head.shape
     for i in prange(h):
         for j in range(w):
-            t = final_t[i, j]
-            for c in range(split):
-                head[i, j, c] = acc[i, j, c] + t * background[c] if fold else acc[i, j, c]
-            for c in range(split, k):
-                tail[i, j, c - split] = acc[i, j, c]
-    return head, tail
-
-
-@njit(parallel=True, cache=True)
-def join_channels(head, tail, v_final_t, background, fold):
-    """The inverse of :func:`split_channels` for the gradients: [H, W, S] and [H, W, K - S] ->
-    [H, W, K]; with ``fold`` also adds the blended background's share to ``v_final_t`` in place,
-    ``((g_0 b_0 + g_1 b_1) + g_2 b_2)`` in torch's order of its broadcast sum."""
-    h, w, split = head.shape
-    k = split + tail.shape[2]
-    acc = np.empty((h, w, k), head.dtype)
-    for i in prange(h):
-        for j in range(w):
-            if fold:
-                share = head[i, j, 0] * background[0]
-                for c in range(1, split):
-                    share += head[i, j, c] * background[c]
-                v_final_t[i, j] += share
-            for c in range(split):
-                acc[i, j, c] = head[i, j, c]
-            for c in range(split, k):
-                acc[i, j, c] = tail[i, j, c - split]
-    return acc
+            share = v_head[i, j, 0] * background[0]
+            for c in range(1, split):
+                share += v_head[i, j, c] * background[c]
+            v_final_t[i, j] += share
 
 
 class _Rasterize(torch.autograd.Function):
@@ -1112,24 +1104,23 @@ class _Rasterize(torch.autograd.Function):
         geom = _geom_array(geom15)
         vals_np = _f32(vals)
         egeom = binning.entry_geometry(geom)
-        acc, acc_z, acc_z2, final_t, median_z, depth_ref, last, median_at, pairs = forward_kernel(
+        # the blended values as two outputs, columns [:split] and [split:] (features and normals), so
+        # that the backward gets their gradients without two zero-filled slice gradients and their sum;
+        # background: blended into the first part in the kernel (None: the caller blends it)
+        ctx.split = split
+        ctx.background = (np.zeros(split, np.float32) if background is None
+                          else np.ascontiguousarray(background.detach().numpy()))
+        ctx.fold = background is not None
+        head, tail, acc_z, acc_z2, final_t, median_z, depth_ref, last, median_at, pairs = forward_kernel(
             egeom, binning.entry_boxes, binning.lists, vals_np, binning.offsets, binning.width,
-            binning.height, binning.tiles_x, float(near))
+            binning.height, binning.tiles_x, float(near), split, ctx.background, ctx.fold)
         binning.pairs = pairs
         ctx.binning = binning
         ctx.near = near
         ctx.in_dtype = (geom15.dtype, vals.dtype, geom15.device)
         ctx.saved = (egeom, vals_np, final_t, depth_ref, last, median_at)
         dev, dt = vals.device, vals.dtype
-        # the blended values as two outputs, columns [:split] and [split:] (features and normals), so
-        # that the backward gets their gradients without two zero-filled slice gradients and their sum
-        ctx.split = split
-        # background: blended into the first part here (None: the caller blends it)
-        ctx.background = (np.zeros(split, np.float32) if background is None
-                          else np.ascontiguousarray(background.detach().numpy()))
-        ctx.fold = background is not None
-        parts = split_channels(acc, split, final_t, ctx.background, ctx.fold)
-        outs = [torch.from_numpy(a).to(device=dev, dtype=dt) for a in parts + (acc_z, acc_z2, final_t, median_z)]
+        outs = [torch.from_numpy(a).to(device=dev, dtype=dt) for a in (head, tail, acc_z, acc_z2, final_t, median_z)]
         ref = torch.from_numpy(depth_ref).to(device=dev, dtype=dt)
         ctx.mark_non_differentiable(ref)
         return tuple(outs) + (ref,)
@@ -1146,13 +1137,14 @@ class _Rasterize(torch.autograd.Function):
             return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
 
         v_t = np.array(arr(v_final_t, (h, w)))  # a copy: the background's share is added in place
-        v_acc = join_channels(arr(v_head, (h, w, ctx.split)), arr(v_tail, (h, w, k - ctx.split)), v_t,
-                              ctx.background, ctx.fold)
+        g_head = arr(v_head, (h, w, ctx.split))
+        if ctx.fold:
+            fold_background_grad(g_head, v_t, ctx.background)
 
         n_chunks = max(1, numba.get_num_threads())
         grads = backward_kernel(egeom, b.entry_boxes, b.lists, vals_np, b.offsets, b.width, b.height, b.tiles_x,
                                 float(ctx.near), n_chunks, final_t, depth_ref, last, median_at,
-                                v_acc, arr(v_z, (h, w)), arr(v_z2, (h, w)),
+                                g_head, arr(v_tail, (h, w, k - ctx.split)), arr(v_z, (h, w)), arr(v_z2, (h, w)),
                                 v_t, arr(v_median, (h, w)))
         g_geom_np, g_vals_np = sum_chunks(grads)
         gdt, vdt, dev = ctx.in_dtype
