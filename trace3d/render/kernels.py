@@ -216,6 +216,16 @@ def splat_geometry(egeom, j):
             egeom[j, 8], egeom[j, 9], egeom[j, 10], egeom[j, 11], egeom[j, 12], egeom[j, 13], egeom[j, 14])
 
 
+@njit(inline="always")
+def first_values(vals, g):
+    """Splat ``g``'s first 8 channel values, zero past K (the kernels' fixed channel planes)."""
+    k = vals.shape[1]
+    z = np.float32(0.0)
+    return (vals[g, 0] if k > 0 else z, vals[g, 1] if k > 1 else z, vals[g, 2] if k > 2 else z,
+            vals[g, 3] if k > 3 else z, vals[g, 4] if k > 4 else z, vals[g, 5] if k > 5 else z,
+            vals[g, 6] if k > 6 else z, vals[g, 7] if k > 7 else z)
+
+
 @njit(inline="always", fastmath=FASTMATH)
 def eval_lane(x, e0, e1, e2, b0, b1, b2, mx, dy2, opac, tw0, tw1, tw2, near32):
     """One pixel-splat pair: (alpha or 0 when skipped, depth z, u, v, 1 / c2, disk term used, exp(-sigma)).
@@ -327,14 +337,7 @@ def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, ne
             y1 = min(ebox[j, 3], py1)
             a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2, mx, my, opac = splat_geometry(egeom, j)
             visited += (y1 - y0) * TILE
-            v0 = vals[g, 0] if k_ch > 0 else zero
-            v1 = vals[g, 1] if k_ch > 1 else zero
-            v2 = vals[g, 2] if k_ch > 2 else zero
-            v3 = vals[g, 3] if k_ch > 3 else zero
-            v4 = vals[g, 4] if k_ch > 4 else zero
-            v5 = vals[g, 5] if k_ch > 5 else zero
-            v6 = vals[g, 6] if k_ch > 6 else zero
-            v7 = vals[g, 7] if k_ch > 7 else zero
+            v0, v1, v2, v3, v4, v5, v6, v7 = first_values(vals, g)
             rel = np.float32(j - start)
             rel1 = np.float32(j - start + 1)
             for py in range(y0, y1):
@@ -490,6 +493,15 @@ B_G7 = np.uint64(41 * TILE_PIXELS)
 
 
 @njit(inline="always", fastmath=FASTMATH)
+def _lane_position(q, px0, py0, my):
+    """Lane ``q`` of a tile (row q // 16, column q % 16): its buffer index, column, pixel centre x, y and
+    y - my."""
+    i = q & (TILE - 1)
+    y = np.float32(py0 + (q >> 4)) + np.float32(0.5)
+    return np.uint64(q), i, np.float32(px0 + i) + np.float32(0.5), y, y - my
+
+
+@njit(inline="always", fastmath=FASTMATH)
 def _lane_front(buf, p, i, x, lx0, lx1, jrel, e0, e1, e2, b0, b1, b2, mx, dy2, opac, tw0, tw1, tw2, near32,
                 v0, v1, v2, v3, v4, v5, v6, v7):
     """One lane of a splat row in the backward, up to the dot product of the upstream gradient with the
@@ -633,14 +645,7 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
                 y1 = min(ebox[j, 3], py1)
                 jrel = np.float32(j - start)
                 a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2, mx, my, opac = splat_geometry(egeom, j)
-                v0 = vals[g, 0] if k_ch > 0 else zero
-                v1 = vals[g, 1] if k_ch > 1 else zero
-                v2 = vals[g, 2] if k_ch > 2 else zero
-                v3 = vals[g, 3] if k_ch > 3 else zero
-                v4 = vals[g, 4] if k_ch > 4 else zero
-                v5 = vals[g, 5] if k_ch > 5 else zero
-                v6 = vals[g, 6] if k_ch > 6 else zero
-                v7 = vals[g, 7] if k_ch > 7 else zero
+                v0, v1, v2, v3, v4, v5, v6, v7 = first_values(vals, g)
                 # per-splat gradient sums over this tile
                 ga0 = zero
                 ga1 = zero
@@ -690,11 +695,7 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
                 if k_ch <= 8:
                     # pass 1, whole
                     for q in range(q0, q1):
-                        p = np.uint64(q)
-                        i = q & (TILE - 1)
-                        x = np.float32(px0 + i) + half
-                        y = np.float32(py0 + (q >> 4)) + half
-                        dy = y - my
+                        p, i, x, y, dy = _lane_position(q, px0, py0, my)
                         live, al, zz, uu, vv, iv, dk, gs, tb, iom, dz, dot = _lane_front(
                             buf, p, i, x, lx0, lx1, jrel, a0 + d0 * y, a1 + d1 * y, a2 + d2 * y, b0, b1, b2, mx,
                             dy * dy, opac, tw0, tw1, tw2, near32, v0, v1, v2, v3, v4, v5, v6, v7)
@@ -703,11 +704,7 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
                 else:
                     # pass 1 up to the first 8 channels' dot product
                     for q in range(q0, q1):
-                        p = np.uint64(q)
-                        i = q & (TILE - 1)
-                        x = np.float32(px0 + i) + half
-                        y = np.float32(py0 + (q >> 4)) + half
-                        dy = y - my
+                        p, i, x, y, dy = _lane_position(q, px0, py0, my)
                         live, al, zz, uu, vv, iv, dk, gs, tb, iom, dz, dot = _lane_front(
                             buf, p, i, x, lx0, lx1, jrel, a0 + d0 * y, a1 + d1 * y, a2 + d2 * y, b0, b1, b2, mx,
                             dy * dy, opac, tw0, tw1, tw2, near32, v0, v1, v2, v3, v4, v5, v6, v7)
@@ -801,22 +798,9 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
                 gbuf[g, 12] += gmx
                 gbuf[g, 13] += gmy
                 gbuf[g, 14] += gop
-                if k_ch > 0:
-                    gbuf[g, GEOM_GRAD_COLS] += gv0
-                if k_ch > 1:
-                    gbuf[g, GEOM_GRAD_COLS + 1] += gv1
-                if k_ch > 2:
-                    gbuf[g, GEOM_GRAD_COLS + 2] += gv2
-                if k_ch > 3:
-                    gbuf[g, GEOM_GRAD_COLS + 3] += gv3
-                if k_ch > 4:
-                    gbuf[g, GEOM_GRAD_COLS + 4] += gv4
-                if k_ch > 5:
-                    gbuf[g, GEOM_GRAD_COLS + 5] += gv5
-                if k_ch > 6:
-                    gbuf[g, GEOM_GRAD_COLS + 6] += gv6
-                if k_ch > 7:
-                    gbuf[g, GEOM_GRAD_COLS + 7] += gv7
+                gv = (gv0, gv1, gv2, gv3, gv4, gv5, gv6, gv7)
+                for ch in range(min(k_ch, 8)):
+                    gbuf[g, GEOM_GRAD_COLS + ch] += gv[ch]
                 for ch in range(8, k_ch):
                     gbuf[g, GEOM_GRAD_COLS + ch] += g_vals[ch]
     return grads
