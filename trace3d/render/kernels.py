@@ -729,9 +729,7 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
                             buf[B_DOT + p] += buf[plane + p] * v_ch
                     # pass 2
                     for q in range(q0, q1):
-                        p = np.uint64(q)
-                        x = np.float32(px0 + (q & (TILE - 1))) + half
-                        dy = (np.float32(py0 + (q >> 4)) + half) - my
+                        p, _, x, _, dy = _lane_position(q, px0, py0, my)
                         _lane_terms(buf, p, x, buf[B_LIVE + p] != zero, buf[B_A + p], buf[B_Z + p],
                                     buf[B_U + p], buf[B_V_ + p], buf[B_INV + p], buf[B_DISK + p] != zero,
                                     buf[B_GAUSS + p], buf[B_TB + p], buf[B_IOM + p], buf[B_DZ + p],
@@ -770,7 +768,7 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
                         gv6 += w * buf[B_G6 + p] if live else zero
                         gv7 += w * buf[B_G7 + p] if live else zero
                     if k_ch > 8:
-                        # channels past the first 8: per blended lane, all of them (contiguous upstream)
+                        # channels past the first 8: per blended lane, all of them
                         for i in range(lx0, lx1):
                             p = row + np.uint64(i)
                             if buf[B_LIVE + p] != zero:
