@@ -551,6 +551,33 @@ def test_fit_divergence_raises_with_last_good_checkpoint():
     assert len(exc.history) == exc.iteration - 1
 
 
+@pytest.mark.parametrize("inject_at", [3, 4])
+def test_fit_divergence_from_a_gradient_is_caught_in_its_iteration(monkeypatch, inject_at):
+    """With compact gradients the loop checks the view's gradients instead of every parameter, except
+    at checkpoints: a non-finite gradient must still stop the fit in the iteration it appears (3: not a
+    checkpoint, 4: one), with the last checkpoint finite."""
+    from trace3d.training.optimizer import GaussianOptimizer
+
+    cameras, images = plane_views(4)
+    model = init_from_points(plane_points(60), np.full((60, 3), 0.5), sh_degree=0, seed=0)
+    original = GaussianOptimizer.sparse_step
+    calls = []
+
+    def poisoned(self, rows, grads, sources, visible=None):
+        calls.append(1)
+        if len(calls) == inject_at:
+            grads["means"][0, 1] = float("inf")
+        return original(self, rows, grads, sources, visible)
+
+    monkeypatch.setattr(GaussianOptimizer, "sparse_step", poisoned)
+    with pytest.raises(TrainingDiverged, match="non-finite at iteration") as info:
+        fit(model, cameras, images, tiny_params(iterations=20, checkpoint_interval=2, densify=False, log_interval=1),
+            progress=False)
+    exc = info.value
+    assert exc.iteration == inject_at
+    assert exc.checkpoint_iteration == 2 and exc.checkpoint.is_finite()
+
+
 # ----------------------------------------------------------------------------------------------
 # The pipeline step
 # ----------------------------------------------------------------------------------------------

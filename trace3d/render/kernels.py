@@ -765,8 +765,9 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
                         gv3 += w * buf[B_G3 + p] if live else zero
                         gv4 += w * buf[B_G4 + p] if live else zero
                         gv5 += w * buf[B_G5 + p] if live else zero
-                        gv6 += w * buf[B_G6 + p] if live else zero
-                        gv7 += w * buf[B_G7 + p] if live else zero
+                        if k_ch > 6:  # the colour and normal channels of a fit are 6
+                            gv6 += w * buf[B_G6 + p] if live else zero
+                            gv7 += w * buf[B_G7 + p] if live else zero
                     if k_ch > 8:
                         # channels past the first 8: per blended lane, all of them
                         for i in range(lx0, lx1):

@@ -26,6 +26,7 @@ unit ellipse; the two agree for the distant, sub-pixel disks the filter exists f
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from typing import NamedTuple
 
@@ -315,33 +316,91 @@ def _boxes_kernel(T, m2d, op, in_front, width, height, alpha_min, margin, filter
     return boxes
 
 
+PREFILTER_MARGIN = 4.0  # pixels: > the low-pass filter's reach sqrt(ln 255) = 2.35 plus BOX_MARGIN, plus slack
+
+
+def frustum_planes(camera: Camera, margin: float = PREFILTER_MARGIN) -> np.ndarray:
+    """[4, 3] unit inward normals (camera space) of the four planes through the camera centre and the
+    edges of the image widened by ``margin`` pixels on every side: a camera-space point in front of
+    the camera projects inside that rectangle iff its dot product with every normal is >= 0."""
+    K = np.asarray(camera.K, dtype=np.float64)
+    lo_x, lo_y, hi_x, hi_y = -margin, -margin, camera.width + margin, camera.height + margin
+    # the corners' rays K^-1 (u, v, 1), in order around the rectangle, and the centre's
+    rays = np.linalg.solve(K, np.array([[lo_x, hi_x, hi_x, lo_x, camera.width / 2.0],
+                                        [lo_y, lo_y, hi_y, hi_y, camera.height / 2.0],
+                                        [1.0, 1.0, 1.0, 1.0, 1.0]])).T
+    planes = np.cross(rays[:4], rays[[1, 2, 3, 0]])
+    planes /= np.linalg.norm(planes, axis=1, keepdims=True)
+    planes *= np.sign(planes @ rays[4])[:, None]
+    return planes
+
+
+@njit(cache=True, inline="always")
+def _outside_frustum(p0, p1, p2, planes, radius):
+    """Whether the ball of ``radius`` around camera-space (p0, p1, p2) lies wholly outside one of the
+    planes (False for NaN: undecided)."""
+    for i in range(4):
+        if planes[i, 0] * p0 + planes[i, 1] * p1 + planes[i, 2] * p2 < -radius:
+            return True
+    return False
+
+
 @njit(parallel=True, cache=True)
 def _visibility_kernel(means, quats, scales, op, K, R, t, near, near32, width, height, alpha_min, margin,
-                       filter_half, visible):
+                       filter_half, planes, visible):
     """``project(...).visible`` in one pass without its outputs: per Gaussian the camera point (as
     ``_points_forward``), the rows of T (as ``_frames_forward``) and the footprint box (as
     :func:`_boxes_kernel`), with every intermediate the projection stores rounded to the splats'
-    float32 where it rounds it, so the answer is the projection's bit for bit (tested)."""
-    n = means.shape[0]
-    for g in prange(n):
-        visible[g] = False
-        p0, p1, p2, zs, m0, m1 = _camera_point(means, g, K, R, t, near)
-        pz = np.float32(p2)
-        o = float(op[g])
-        if not pz > near32 or not o > alpha_min:  # in_front is the float32 depth against near
-            continue
-        m0 = float(np.float32(m0))
-        m1 = float(np.float32(m1))
-        z_ = float(np.float32(zs))
-        (w_, qx, qy, qz, inv, q00, q01, q02, q10, q11, q12, q20, q21, q22, au0, au1, au2, av0, av1, av2, aw0, aw1,
-         aw2, sign) = _camera_axes_at(quats, R, g, float(np.float32(p0)), float(np.float32(p1)), float(pz))
-        tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2 = _ray_rows(K, au0, au1, au2, av0, av1, av2, float(scales[g, 0]),
-                                                               float(scales[g, 1]), z_, m0, m1)
-        f = np.float32
-        x0, y0, x1, y1 = _box(float(f(tx0)), float(f(tx1)), float(f(tx2)), float(f(ty0)), float(f(ty1)),
-                              float(f(ty2)), float(f(tw0)), float(f(tw1)), float(f(tw2)), m0, m1, o, width, height,
-                              margin, filter_half, near)
-        visible[g] = x1 > x0 and y1 > y0
+    float32 where it rounds it, so the answer is the projection's bit for bit (tested).
+
+    Before the rows of T, a conservative test: the disk lies in the ball of radius
+    sqrt(2 ln(255 o)) max(s_u, s_v) around its centre, and the low-pass filter reaches less than
+    ``PREFILTER_MARGIN`` pixels from the projected centre, so a Gaussian whose ball lies wholly outside
+    the frustum of the image widened by that margin (``planes``, :func:`frustum_planes`) cannot reach
+    a pixel: it is not visible, and the exact test is skipped (most Gaussians a view does not see)."""
+    for g in prange(means.shape[0]):
+        _visibility_of(means, quats, scales, op, K, R, t, near, near32, width, height, alpha_min, margin,
+                       filter_half, planes, visible, g)
+
+
+@njit(cache=True, inline="always")
+def _visibility_of(means, quats, scales, op, K, R, t, near, near32, width, height, alpha_min, margin, filter_half,
+                   planes, visible, g):
+    """visible[g] for :func:`_visibility_kernel`."""
+    visible[g] = False
+    p0, p1, p2, zs, m0, m1 = _camera_point(means, g, K, R, t, near)
+    pz = np.float32(p2)
+    o = float(op[g])
+    if not pz > near32 or not o > alpha_min:  # in_front is the float32 depth against near
+        return
+    reach = np.sqrt(2.0 * max(np.log(max(o, 1e-30) * 255.0), 0.0)) * max(abs(float(scales[g, 0])),
+                                                                         abs(float(scales[g, 1])))
+    if _outside_frustum(p0, p1, p2, planes, reach * 1.001 + 1e-9 * (abs(p0) + abs(p1) + abs(p2))):
+        return
+    m0 = float(np.float32(m0))
+    m1 = float(np.float32(m1))
+    z_ = float(np.float32(zs))
+    (w_, qx, qy, qz, inv, q00, q01, q02, q10, q11, q12, q20, q21, q22, au0, au1, au2, av0, av1, av2, aw0, aw1,
+     aw2, sign) = _camera_axes_at(quats, R, g, float(np.float32(p0)), float(np.float32(p1)), float(pz))
+    tx0, tx1, tx2, ty0, ty1, ty2, tw0, tw1, tw2 = _ray_rows(K, au0, au1, au2, av0, av1, av2, float(scales[g, 0]),
+                                                           float(scales[g, 1]), z_, m0, m1)
+    f = np.float32
+    x0, y0, x1, y1 = _box(float(f(tx0)), float(f(tx1)), float(f(tx2)), float(f(ty0)), float(f(ty1)),
+                          float(f(ty2)), float(f(tw0)), float(f(tw1)), float(f(tw2)), m0, m1, o, width, height,
+                          margin, filter_half, near)
+    visible[g] = x1 > x0 and y1 > y0
+
+
+@functools.lru_cache(maxsize=256)
+def _visibility_camera(width: int, height: int, k_bytes: bytes, w2c_bytes: bytes) -> tuple:
+    """A camera's float64 arrays for :func:`_visibility_kernel`: K, R, t rounded to float32 as
+    :func:`camera_tensors` gives them to the float32 projection, and the widened frustum's planes
+    (cached: a fit renders the same few hundred views again and again)."""
+    K = np.frombuffer(k_bytes, np.float64).reshape(3, 3)
+    w2c = np.frombuffer(w2c_bytes, np.float64).reshape(4, 4)
+    r32 = lambda a: np.ascontiguousarray(a.astype(np.float32).astype(np.float64))  # noqa: E731
+    planes = frustum_planes(Camera(name="", split="", width=width, height=height, K=K, world_to_camera=w2c))
+    return r32(K), r32(w2c[:3, :3]), r32(w2c[:3, 3]), planes
 
 
 def visible_mask(splats: Splats, camera: Camera, near: float = 0.01) -> Tensor:
@@ -352,13 +411,15 @@ def visible_mask(splats: Splats, camera: Camera, near: float = 0.01) -> Tensor:
     tensors = (splats.means, splats.quats, splats.scales, splats.opacities)
     if not (use_fused(*tensors) and all(t.dtype == torch.float32 for t in tensors)):
         return project(splats, camera, near).visible
-    K, rot_cw, t_cw = camera_tensors(camera, splats.means.device, splats.means.dtype)
-    as64 = lambda a: np.ascontiguousarray(a.detach().cpu().double().numpy())  # noqa: E731
+    camera_tensors(camera, splats.means.device, splats.means.dtype)  # validates K
+    K, rot_cw, t_cw, planes = _visibility_camera(int(camera.width), int(camera.height),
+                                                 np.asarray(camera.K, np.float64).tobytes(),
+                                                 np.asarray(camera.world_to_camera, np.float64).tobytes())
     arr = lambda a: np.ascontiguousarray(a.detach().numpy())  # noqa: E731
     visible = np.empty(splats.means.shape[0], np.bool_)
-    _visibility_kernel(arr(splats.means), arr(splats.quats), arr(splats.scales), arr(splats.opacities), as64(K),
-                       as64(rot_cw), as64(t_cw), float(near), np.float32(near), int(camera.width),
-                       int(camera.height), ALPHA_MIN, BOX_MARGIN, FILTER_INV_SQUARE / 2.0, visible)
+    _visibility_kernel(arr(splats.means), arr(splats.quats), arr(splats.scales), arr(splats.opacities), K, rot_cw,
+                       t_cw, float(near), np.float32(near), int(camera.width), int(camera.height), ALPHA_MIN,
+                       BOX_MARGIN, FILTER_INV_SQUARE / 2.0, planes, visible)
     return torch.from_numpy(visible)
 
 

@@ -271,19 +271,31 @@ def _fit_loop(model: GaussianModel, cameras: Sequence[Camera], images: list[torc
             # with compact gradients the render's per-splat outputs are per row of view_model.rows
             seen = dataclasses.replace(out, rows=view_model.rows) if sparse else out
             event = strategy.after_backward(iteration, state, seen, camera)
+            edited = bool(event)
             if event:
                 densify_events.append({**event, "iteration": iteration})
             if sparse:
-                state.sparse_step(view_model.rows, view_model.grads(), view_model.sources, out.visible)
+                grads = view_model.grads()
+                state.sparse_step(view_model.rows, grads, view_model.sources, out.visible)
             else:
                 state.step(out.visible)
             event = strategy.after_step(iteration, state)
+            edited = edited or bool(event)
             if event:
                 densify_events.append({**event, "iteration": iteration})
-            if not state.model.is_finite():  # also catches non-finite gradients (Adam propagates them)
+            checkpointing = iteration % schedule["checkpoint_interval"] == 0
+            if sparse and not (edited or checkpointing or iteration == iterations):
+                # the view's gradients (the rows it saw): a non-finite one is what makes a parameter
+                # non-finite in a step (Adam propagates it to that row), and it is caught here in the
+                # same iteration without a pass over every parameter; all parameters are checked
+                # before each checkpoint, after density control and at the end
+                finite = _all_finite(grads.values())
+            else:
+                finite = state.model.is_finite()  # also catches non-finite gradients (Adam propagates them)
+            if not finite:
                 _diverged(f"a parameter became non-finite at iteration {iteration}", iteration, checkpoint,
                           checkpoint_iteration, history)
-            if iteration % schedule["checkpoint_interval"] == 0:
+            if checkpointing:
                 checkpoint, checkpoint_iteration = state.model.detached_copy("cpu"), iteration
 
         sums_count += 1
@@ -303,6 +315,12 @@ def _fit_loop(model: GaussianModel, cameras: Sequence[Camera], images: list[torc
     seconds = time.perf_counter() - start
     trained = state.model.detached_copy()
     return TrainResult(model=trained, history=history, seconds=seconds, densify_events=densify_events)
+
+
+def _all_finite(tensors) -> bool:
+    """Whether every value of the tensors is finite (one sum each, as GaussianModel.is_finite)."""
+    sums = [t.detach().float().sum() for t in tensors]
+    return not sums or bool(torch.isfinite(torch.stack(sums).sum()))
 
 
 def _diverged(reason: str, iteration: int, checkpoint: GaussianModel, checkpoint_iteration: int,
