@@ -227,6 +227,15 @@ def first_values(vals, g):
 
 
 @njit(inline="always", fastmath=FASTMATH)
+def _scaled_add(buf, dst, src, scale, q0, q1):
+    """buf[dst + q] += buf[src + q] * scale for the lanes q in [q0, q1) of two planes (one vector loop;
+    the kernels' channels past the first 8)."""
+    for q in range(q0, q1):
+        p = np.uint64(q)
+        buf[dst + p] += buf[src + p] * scale
+
+
+@njit(inline="always", fastmath=FASTMATH)
 def eval_lane(x, e0, e1, e2, b0, b1, b2, mx, dy2, opac, tw0, tw1, tw2, near32):
     """One pixel-splat pair: (alpha or 0 when skipped, depth z, u, v, 1 / c2, disk term used, exp(-sigma)).
 
@@ -397,13 +406,8 @@ def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, ne
             # channels beyond the first 8 (planes after the 8 fixed ones): every lane of the rows
             # per channel (a lane that did not blend, inside or outside the image, has w = 0 and adds
             # nothing; the lanes outside the image are never read)
-            if k_ch > 8:
-                for ch in range(8, k_ch):
-                    v_ch = vals[g, ch]
-                    plane = F_ACC + np.uint64(ch * TILE_PIXELS)
-                    for q in range(q0, q1):
-                        p = np.uint64(q)
-                        buf[plane + p] += buf[F_RW + p] * v_ch
+            for ch in range(8, k_ch):
+                _scaled_add(buf, F_ACC + np.uint64(ch * TILE_PIXELS), F_RW, vals[g, ch], q0, q1)
             if n_done == n_pix:
                 break
         pairs[t] = visited
@@ -714,11 +718,7 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
                         buf[B_DOT + p] = dot
                     # the other channels' dot products, in channel order
                     for ch in range(8, k_ch):
-                        v_ch = vals[g, ch]
-                        plane = B_G0 + np.uint64(ch * tp)
-                        for q in range(q0, q1):
-                            p = np.uint64(q)
-                            buf[B_DOT + p] += buf[plane + p] * v_ch
+                        _scaled_add(buf, B_DOT, B_G0 + np.uint64(ch * tp), vals[g, ch], q0, q1)
                     # pass 2
                     for q in range(q0, q1):
                         p, _, x, _, dy = _lane_position(q, px0, py0, my)
