@@ -365,13 +365,30 @@ def test_visible_mask_at_the_image_border_is_the_projections_bit_for_bit():
     assert 0.05 < float(expected[outside].float().mean()) < 0.95
 
 
+def test_visible_mask_rejects_intrinsics_without_last_row_0_0_1():
+    """The visibility pass checks K as the projection does (its camera arrays are cached, the check
+    with them), naming the camera."""
+    from trace3d.errors import Trace3DError
+    from trace3d.render import Splats
+    from trace3d.render.projection import visible_mask
+
+    cam = _camera(4)
+    bad = Camera(name="tilted", split="train", width=cam.width, height=cam.height,
+                 K=np.asarray(cam.K) + np.array([[0.0, 0, 0], [0, 0, 0], [0.1, 0, 0]]),
+                 world_to_camera=cam.world_to_camera)
+    splats = Splats(torch.zeros(3, 3), torch.tensor([[1.0, 0, 0, 0]] * 3), torch.full((3, 2), 0.1),
+                    torch.full((3,), 0.5))
+    with pytest.raises(Trace3DError, match=r"camera 'tilted': the renderer needs K with last row \(0, 0, 1\)"):
+        visible_mask(splats, bad, 0.01)
+
+
 def test_frustum_planes_bound_the_widened_image():
     """frustum_planes: a point that projects inside the image widened by the margin is inside every
     plane, one that projects beyond it is outside one; the ball test takes the radius."""
     from trace3d.render.projection import _outside_frustum, frustum_planes
 
     cam = _camera(1)
-    planes = frustum_planes(cam, 4.0)
+    planes = frustum_planes(np.asarray(cam.K), cam.width, cam.height, 4.0)
     k_inv = np.linalg.inv(np.asarray(cam.K))
     for u, v, inside in ((-3.9, 20.0, True), (-4.1, 20.0, False), (cam.width + 3.9, 5.0, True),
                          (cam.width + 4.1, 5.0, False), (30.0, -4.1, False), (30.0, cam.height + 3.9, True),

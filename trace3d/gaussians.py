@@ -191,6 +191,14 @@ def _nearest_neighbour_scales_reference(points: torch.Tensor, k: int = 3, chunk_
     return out
 
 
+def all_finite(tensors) -> bool:
+    """Whether every value of the tensors is finite: one sum each (a NaN or an infinity makes it
+    non-finite, and so does an overflowing sum), no gradient."""
+    with torch.no_grad():
+        sums = [t.detach().float().sum() for t in tensors]
+        return not sums or bool(torch.isfinite(torch.stack(sums).sum()))
+
+
 @dataclass
 class GaussianModel:
     """Raw parameters of N 2D Gaussians (see the module docstring for the shapes), plus any number
@@ -300,10 +308,7 @@ class GaussianModel:
     def is_finite(self) -> bool:
         """Whether every floating-point attribute is finite (one sum per tensor: a NaN or an infinity
         makes it non-finite, and so does an overflowing sum)."""
-        with torch.no_grad():
-            sums = [t.detach().float().sum() for t in self.tensors().values() if t.is_floating_point()]
-            total = torch.stack(sums).sum()
-        return bool(torch.isfinite(total))
+        return all_finite(t for t in self.tensors().values() if t.is_floating_point())
 
     # --- activations ---------------------------------------------------------------------------
     @property

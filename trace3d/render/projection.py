@@ -97,11 +97,15 @@ class Projected:
                          self.boxes[rows.cpu().numpy()], self.visible.index_select(0, rows))
 
 
+def _check_intrinsics(K: np.ndarray, name: str) -> None:
+    if K.shape != (3, 3) or not np.allclose(K[2], [0.0, 0.0, 1.0]):
+        raise Trace3DError(f"camera {name!r}: the renderer needs K with last row (0, 0, 1), got {K[2].tolist()}.")
+
+
 def camera_tensors(camera: Camera, device: torch.device, dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor]:
     """The camera as tensors: K [3, 3], world-to-camera rotation [3, 3], translation [3]."""
     K = np.asarray(camera.K, dtype=np.float64)
-    if K.shape != (3, 3) or not np.allclose(K[2], [0.0, 0.0, 1.0]):
-        raise Trace3DError(f"camera {camera.name!r}: the renderer needs K with last row (0, 0, 1), got {K[2].tolist()}.")
+    _check_intrinsics(K, camera.name)
     w2c = np.asarray(camera.world_to_camera, dtype=np.float64)
     to = dict(device=device, dtype=dtype)
     return torch.as_tensor(K, **to), torch.as_tensor(w2c[:3, :3], **to), torch.as_tensor(w2c[:3, 3], **to)
@@ -319,15 +323,15 @@ def _boxes_kernel(T, m2d, op, in_front, width, height, alpha_min, margin, filter
 PREFILTER_MARGIN = 4.0  # pixels: > the low-pass filter's reach sqrt(ln 255) = 2.35 plus BOX_MARGIN, plus slack
 
 
-def frustum_planes(camera: Camera, margin: float = PREFILTER_MARGIN) -> np.ndarray:
+def frustum_planes(K: np.ndarray, width: int, height: int, margin: float = PREFILTER_MARGIN) -> np.ndarray:
     """[4, 3] unit inward normals (camera space) of the four planes through the camera centre and the
-    edges of the image widened by ``margin`` pixels on every side: a camera-space point in front of
-    the camera projects inside that rectangle iff its dot product with every normal is >= 0."""
-    K = np.asarray(camera.K, dtype=np.float64)
-    lo_x, lo_y, hi_x, hi_y = -margin, -margin, camera.width + margin, camera.height + margin
+    edges of the ``width`` x ``height`` image of intrinsics K widened by ``margin`` pixels on every
+    side: a camera-space point in front of the camera projects inside that rectangle iff its dot
+    product with every normal is >= 0."""
+    lo_x, lo_y, hi_x, hi_y = -margin, -margin, width + margin, height + margin
     # the corners' rays K^-1 (u, v, 1), in order around the rectangle, and the centre's
-    rays = np.linalg.solve(K, np.array([[lo_x, hi_x, hi_x, lo_x, camera.width / 2.0],
-                                        [lo_y, lo_y, hi_y, hi_y, camera.height / 2.0],
+    rays = np.linalg.solve(np.asarray(K, np.float64), np.array([[lo_x, hi_x, hi_x, lo_x, width / 2.0],
+                                                               [lo_y, lo_y, hi_y, hi_y, height / 2.0],
                                         [1.0, 1.0, 1.0, 1.0, 1.0]])).T
     planes = np.cross(rays[:4], rays[[1, 2, 3, 0]])
     planes /= np.linalg.norm(planes, axis=1, keepdims=True)
@@ -392,15 +396,16 @@ def _visibility_of(means, quats, scales, op, K, R, t, near, near32, width, heigh
 
 
 @functools.lru_cache(maxsize=256)
-def _visibility_camera(width: int, height: int, k_bytes: bytes, w2c_bytes: bytes) -> tuple:
-    """A camera's float64 arrays for :func:`_visibility_kernel`: K, R, t rounded to float32 as
-    :func:`camera_tensors` gives them to the float32 projection, and the widened frustum's planes
-    (cached: a fit renders the same few hundred views again and again)."""
+def _visibility_camera(name: str, width: int, height: int, k_bytes: bytes, w2c_bytes: bytes) -> tuple:
+    """A camera's float64 arrays for :func:`_visibility_kernel`, K checked as :func:`camera_tensors`
+    checks it: K, R, t rounded to float32 as :func:`camera_tensors` gives them to the float32
+    projection, and the widened frustum's planes (cached: a fit renders the same few hundred views
+    again and again)."""
     K = np.frombuffer(k_bytes, np.float64).reshape(3, 3)
+    _check_intrinsics(K, name)
     w2c = np.frombuffer(w2c_bytes, np.float64).reshape(4, 4)
     r32 = lambda a: np.ascontiguousarray(a.astype(np.float32).astype(np.float64))  # noqa: E731
-    planes = frustum_planes(Camera(name="", split="", width=width, height=height, K=K, world_to_camera=w2c))
-    return r32(K), r32(w2c[:3, :3]), r32(w2c[:3, 3]), planes
+    return r32(K), r32(w2c[:3, :3]), r32(w2c[:3, 3]), frustum_planes(K, width, height)
 
 
 def visible_mask(splats: Splats, camera: Camera, near: float = 0.01) -> Tensor:
@@ -411,8 +416,7 @@ def visible_mask(splats: Splats, camera: Camera, near: float = 0.01) -> Tensor:
     tensors = (splats.means, splats.quats, splats.scales, splats.opacities)
     if not (use_fused(*tensors) and all(t.dtype == torch.float32 for t in tensors)):
         return project(splats, camera, near).visible
-    camera_tensors(camera, splats.means.device, splats.means.dtype)  # validates K
-    K, rot_cw, t_cw, planes = _visibility_camera(int(camera.width), int(camera.height),
+    K, rot_cw, t_cw, planes = _visibility_camera(str(camera.name), int(camera.width), int(camera.height),
                                                  np.asarray(camera.K, np.float64).tobytes(),
                                                  np.asarray(camera.world_to_camera, np.float64).tobytes())
     arr = lambda a: np.ascontiguousarray(a.detach().numpy())  # noqa: E731

@@ -42,7 +42,7 @@ import torch
 from tqdm import tqdm
 
 from ..errors import ConfigError, Trace3DError
-from ..gaussians import GaussianModel
+from ..gaussians import GaussianModel, all_finite
 from ..loss_kernels import surface_depth
 from ..losses import depth_normal_consistency, photometric_terms, psnr, ssim
 from ..scene import Camera
@@ -289,7 +289,7 @@ def _fit_loop(model: GaussianModel, cameras: Sequence[Camera], images: list[torc
                 # non-finite in a step (Adam propagates it to that row), and it is caught here in the
                 # same iteration without a pass over every parameter; all parameters are checked
                 # before each checkpoint, after density control and at the end
-                finite = _all_finite(grads.values())
+                finite = all_finite(grads.values())
             else:
                 finite = state.model.is_finite()  # also catches non-finite gradients (Adam propagates them)
             if not finite:
@@ -315,12 +315,6 @@ def _fit_loop(model: GaussianModel, cameras: Sequence[Camera], images: list[torc
     seconds = time.perf_counter() - start
     trained = state.model.detached_copy()
     return TrainResult(model=trained, history=history, seconds=seconds, densify_events=densify_events)
-
-
-def _all_finite(tensors) -> bool:
-    """Whether every value of the tensors is finite (one sum each, as GaussianModel.is_finite)."""
-    sums = [t.detach().float().sum() for t in tensors]
-    return not sums or bool(torch.isfinite(torch.stack(sums).sum()))
 
 
 def _diverged(reason: str, iteration: int, checkpoint: GaussianModel, checkpoint_iteration: int,
