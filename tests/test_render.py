@@ -417,10 +417,11 @@ class TestTrace:
 
     @pytest.mark.parametrize("scene", ["random", "opaque"])
     @pytest.mark.parametrize("backend", ["numba", "reference"])
-    def test_matches_per_pixel_loop(self, scene, backend):
+    @pytest.mark.parametrize("top", [3, 6])  # at most 4 labels per tile (their own vector passes) or more
+    def test_matches_per_pixel_loop(self, scene, backend, top):
         # the opaque scene reaches the 0.99 clamp and stops blending early at many pixels
         splats, camera, _ = make_scene(4) if scene == "random" else opaque_scene(15)
-        labels = torch.randint(-1, 6, (camera.height, camera.width), generator=torch.Generator().manual_seed(3))
+        labels = torch.randint(-1, top, (camera.height, camera.width), generator=torch.Generator().manual_seed(3))
         oracle = trace_bruteforce(splats, camera, labels, 6)
         assert (oracle > 0).sum() >= 20
         if scene == "opaque":
@@ -447,6 +448,51 @@ class TestTrace:
         with torch.no_grad():
             alpha = render(splats, camera, features).alpha
         assert float((weights.sum(0).reshape(camera.height, camera.width) - alpha).abs().max()) <= 1e-5
+
+    def test_coalesce_sums_repeats_in_the_order_they_come(self):
+        from trace3d.render.kernels import coalesce_triplets
+
+        # 1 + 2^-24 rounds back to 1 in float32, 2^-24 + 2^-24 = 2^-23 does not: the order shows
+        e = np.float32(2.0 ** -24)
+        for w, expected in (([1.0, e, e], 1.0), ([e, e, 1.0], 1.0 + 2.0 ** -23)):
+            rows, cols, vals, indptr = coalesce_triplets(np.zeros(3, np.int64), np.full(3, 2, np.int64),
+                                                         np.array(w, np.float32), 2)
+            assert rows.tolist() == [0] and cols.tolist() == [2] and indptr.tolist() == [0, 1, 1]
+            assert vals[0] == np.float32(expected)
+
+    @pytest.mark.parametrize("per_row", [5, 200])  # rows sorted by insertion, and by merge sort
+    def test_coalesce_matches_a_dictionary(self, per_row):
+        from trace3d.render.kernels import coalesce_triplets
+
+        rng = np.random.default_rng(per_row)
+        n, size = 40, 40 * per_row
+        rows = rng.integers(0, n - 3, size)  # the last rows stay empty
+        cols = rng.integers(0, per_row // 2 + 2, size)  # many repeats
+        vals = rng.random(size).astype(np.float32)
+        sums: dict = {}
+        for r, c, v in zip(rows.tolist(), cols.tolist(), vals):
+            sums[(r, c)] = sums[(r, c)] + v if (r, c) in sums else v  # float32 adds, in order
+        keys = sorted(sums)
+        out_rows, out_cols, out_vals, indptr = coalesce_triplets(rows, cols, vals, n)
+        assert list(zip(out_rows.tolist(), out_cols.tolist())) == keys
+        assert np.array_equal(out_vals, np.array([sums[k] for k in keys], np.float32))
+        assert np.array_equal(indptr, np.searchsorted(out_rows, np.arange(n + 1)))
+
+    @pytest.mark.parametrize("count_pixels", [False, True])
+    def test_trace_reduced_is_trace_argmax_of_trace(self, count_pixels):
+        from trace3d.render import trace_reduced
+
+        splats, camera, _ = make_scene(9, n=300)  # with splats behind the camera and off-screen
+        labels = torch.randint(-1, 5, (camera.height, camera.width), generator=torch.Generator().manual_seed(2))
+        label, prob, total = trace_argmax(trace(splats, camera, labels, 5, count_pixels=count_pixels))
+        assert bool((label == -1).any()) and bool((label >= 0).any())
+        table = (np.zeros((300, 3), np.int32), np.zeros((300, 3), np.float32), np.zeros((300, 3), np.float32))
+        out = trace_reduced(splats, camera, labels, 5, count_pixels=count_pixels, out=tuple(t[:, 1] for t in table))
+        for got, want in zip(out, (label.numpy().astype(np.int32), prob.numpy(), total.numpy())):
+            assert got.dtype == want.dtype and np.array_equal(got, want)  # bit for bit
+        assert np.array_equal(table[0][:, 1], label.numpy()) and not table[0][:, 0].any()  # the column only
+        with pytest.raises(Trace3DError, match="out must be"):
+            trace_reduced(splats, camera, labels, 5, out=(np.zeros(300, np.int64),) + out[1:])
 
     def test_argmax(self):
         weights = torch.tensor([[0.1, 0.3, 0.0], [0.0, 0.0, 0.0], [0.2, 0.2, 0.6], [0.5, 0.5, 0.0]])

@@ -3,14 +3,15 @@ hand-written backward, a dense pure-torch reference twin, and Gaussian Instance 
 
 Public API::
 
-    from trace3d.render import Splats, RenderOutput, render, trace, trace_argmax
+    from trace3d.render import Splats, RenderOutput, render, trace, trace_argmax, trace_reduced
 """
 
 from .core import (BACKENDS, RenderOutput, render, set_default_backend, trace, trace_argmax,
-                   trace_by_backward)
+                   trace_by_backward, trace_reduced)
 from .projection import Projected, Splats, project, quat_to_rotmat
 
 __all__ = [
     "BACKENDS", "Projected", "RenderOutput", "Splats", "project", "quat_to_rotmat", "render",
     "set_default_backend", "trace", "trace_argmax", "trace_by_backward",
+    "trace_reduced",
 ]

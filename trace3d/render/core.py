@@ -10,12 +10,13 @@ import dataclasses
 import logging
 from typing import Callable, Optional
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from ..errors import Trace3DError
 from ..scene import Camera
-from .projection import Projected, Splats, check_splats, project
+from .projection import Projected, Splats, check_splats, project, visible_mask
 from .reference import render_reference
 
 log = logging.getLogger(__name__)
@@ -194,16 +195,70 @@ def trace(splats: Splats, camera: Camera, labels: Tensor, num_labels: int, near:
     n = check_splats(splats)
     labels = _check_labels(labels, camera, num_labels)
     name = _backend(backend)
-    with torch.no_grad():
-        proj = project(splats, camera, near)
-        if name == "reference":
-            if count_pixels:
-                raise Trace3DError("trace: count_pixels needs the numba back end.")
-            dense = _trace_by_backward(proj, camera, labels, num_labels, near, "reference")
-            return dense.to_sparse().coalesce()
-        from .kernels import trace_weights
+    if name == "reference":
+        if count_pixels:
+            raise Trace3DError("trace: count_pixels needs the numba back end.")
+        with torch.no_grad():
+            proj = project(splats, camera, near)
+        dense = _trace_by_backward(proj, camera, labels, num_labels, near, "reference")
+        return dense.to_sparse().coalesce()
+    from .kernels import coalesce_triplets
 
-        return trace_weights(proj, camera.width, camera.height, labels, num_labels, near, count_pixels=count_pixels)
+    seen, rows, cols, w = traced_triplets(splats, camera, labels, near, count_pixels)
+    rows, cols, w, _ = coalesce_triplets(rows, cols, w, seen.shape[0])
+    idx = torch.from_numpy(np.stack([seen[rows], cols]))  # seen is ascending: still sorted
+    return torch.sparse_coo_tensor(idx, torch.from_numpy(w), (n, num_labels), check_invariants=False,
+                                   is_coalesced=True).to(splats.means.device)
+
+
+def traced_triplets(splats: Splats, camera: Camera, labels: Tensor, near: float = 0.01, count_pixels: bool = False
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The numba trace kernel's output for one view (labels checked by the caller): ``seen`` [R] int64,
+    the splats the view sees (ascending), and the triplets rows [E] (positions in ``seen``), cols [E]
+    (labels), weights [E] float32 in tile order (:func:`~trace3d.render.kernels.trace_triplets`).
+
+    Only the seen splats are projected and traced: the projection is row by row, so their values are
+    those of the whole projection, and a view of a room sees about a fifth of it.
+    """
+    from .kernels import trace_triplets
+
+    with torch.no_grad():
+        seen = torch.nonzero(visible_mask(splats, camera, near)).squeeze(1)
+        proj = project(Splats(*(t.detach().index_select(0, seen) for t in splats)), camera, near)
+        rows, cols, w = trace_triplets(proj, camera.width, camera.height, labels, near, count_pixels=count_pixels)
+    return seen.cpu().numpy(), rows, cols, w
+
+
+def trace_reduced(splats: Splats, camera: Camera, labels: Tensor, num_labels: int, near: float = 0.01,
+                  backend: Optional[str] = None, count_pixels: bool = False,
+                  out: Optional[tuple[np.ndarray, np.ndarray, np.ndarray]] = None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`trace_argmax` of :func:`trace` as numpy arrays (label [N] int32, probability [N] and
+    total [N] float32), the per-view reduction GIT's statistics keep; written into ``out`` (three
+    such arrays, strided views allowed: a column of an [N, views] table) when given.
+
+    The numba back end reduces the kernel's coalesced triplets directly
+    (:func:`~trace3d.render.kernels.reduce_coalesced`, bit for bit :func:`trace_argmax` of
+    :func:`trace`, tested) instead of building the [N, T] sparse tensor and reducing it with torch.
+    """
+    n = check_splats(splats)
+    name = _backend(backend)
+    if out is None:
+        out = (np.empty(n, np.int32), np.empty(n, np.float32), np.empty(n, np.float32))
+    if any(a.shape != (n,) for a in out) or [a.dtype for a in out] != [np.int32, np.float32, np.float32]:
+        raise Trace3DError(f"trace_reduced: out must be three [{n}] arrays (int32, float32, float32).")
+    if name == "reference":
+        reduced = trace_argmax(trace(splats, camera, labels, num_labels, near, name, count_pixels))
+        for dst, src in zip(out, reduced):
+            dst[:] = src.cpu().numpy()
+        return out
+    labels = _check_labels(labels, camera, num_labels)
+    from .kernels import coalesce_triplets, reduce_into_rows
+
+    seen, rows, cols, w = traced_triplets(splats, camera, labels, near, count_pixels)
+    _, cols, w, indptr = coalesce_triplets(rows, cols, w, seen.shape[0])
+    reduce_into_rows(indptr, cols, w, seen, *out)
+    return out
 
 
 def trace_by_backward(splats: Splats, camera: Camera, labels: Tensor, num_labels: int, near: float = 0.01,

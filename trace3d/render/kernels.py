@@ -66,6 +66,14 @@ F_ACC4 = np.uint64(15 * TILE_PIXELS)
 F_ACC5 = np.uint64(16 * TILE_PIXELS)
 F_ACC6 = np.uint64(17 * TILE_PIXELS)
 F_ACC7 = np.uint64(18 * TILE_PIXELS)
+# trace_kernel's flat tile buffer: transmittance, open flag, the current row's alpha and weight
+T_OPEN = np.uint64(1 * TILE_PIXELS)
+T_RA = np.uint64(2 * TILE_PIXELS)
+T_RW = np.uint64(3 * TILE_PIXELS)
+T_LOC = np.uint64(4 * TILE_PIXELS)
+T_COL = np.uint64(5 * TILE_PIXELS)
+# trace_kernel sums the weights of a tile with at most this many labels label by label in vector loops
+TRACE_LABEL_PASSES = 4
 GEOM_COLS = 16
 GEOM_GRAD_COLS = 15
 LEVEL_SLACK = 1e-3  # added to the informational ln(255 o) column
@@ -850,6 +858,8 @@ def trace_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, labe
     n_batch = tiles.shape[0]
     t_min = np.float32(TRANSMITTANCE_MIN)
     near32 = np.float32(near)
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
     cap = np.zeros(n_batch + 1, np.int64)
     for b in range(n_batch):
         t = tiles[b]
@@ -889,49 +899,72 @@ def trace_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, labe
                     count += 1
                 local_of[(py - py0) * TILE + (px - px0)] = found
         table = np.zeros((end - start, n_lab), np.float32)
-        trans = np.ones(TILE_PIXELS, np.float32)
-        done = np.zeros(TILE_PIXELS, np.bool_)
-        xs = np.empty(TILE, np.float32)
-        for i in range(TILE):
-            xs[i] = np.float32(px0 + i) + np.float32(0.5)
-        ra = np.zeros(TILE, np.float32)
+        # flat tile buffer: transmittance, open flag, the current row's alpha and weight planes, the
+        # lanes' local labels (-1 none) as float32
+        buf = np.zeros(5 * TILE_PIXELS + TILE, np.float32)
+        buf[:2 * TILE_PIXELS] = 1.0
+        for q in range(TILE_PIXELS):
+            buf[T_LOC + np.uint64(q)] = np.float32(local_of[q])
         n_done = 0
         n_used = start
         for j in range(start, end):
             n_used = j + 1
-            x0 = max(ebox[j, 0], px0)
-            x1 = min(ebox[j, 2], px1)
+            lx0 = max(ebox[j, 0], px0) - px0
+            lx1 = min(ebox[j, 2], px1) - px0
             y0 = max(ebox[j, 1], py0)
             y1 = min(ebox[j, 3], py1)
             a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2, mx, my, opac = splat_geometry(egeom, j)
-            for py in range(y0, y1):
-                y = np.float32(py) + np.float32(0.5)
-                e0 = a0 + d0 * y
-                e1 = a1 + d1 * y
-                e2 = a2 + d2 * y
-                dy = y - my
-                dy2 = dy * dy
-                for i in range(TILE):
-                    al, _, _, _, _, _, _ = eval_lane(xs[i], e0, e1, e2, b0, b1, b2, mx, dy2, opac,
-                                                    tw0, tw1, tw2, near32)
-                    ra[i] = al
-                row = (py - py0) * TILE
-                for px in range(x0 - px0, x1 - px0):
-                    alpha = ra[px]
-                    if alpha == np.float32(0.0):
-                        continue
-                    p = row + px
-                    if done[p]:
-                        continue
-                    t_next = trans[p] * (np.float32(1.0) - alpha)
-                    if t_next < t_min:
-                        done[p] = True
-                        n_done += 1
-                        continue
-                    loc = local_of[p]
-                    if loc >= 0:
-                        table[j - start, loc] += np.float32(1.0) if count_pixels else alpha * trans[p]
-                    trans[p] = t_next
+            q0 = (y0 - py0) * TILE
+            q1 = (y1 - py0) * TILE
+            # every lane of the footprint's rows in one loop per pass, as in forward_kernel: alpha (0
+            # outside the box), then the blend of the open lanes without branches
+            for q in range(q0, q1):
+                p, i, x, y, dy = _lane_position(q, px0, py0, my)
+                al, _, _, _, _, _, _ = eval_lane(x, a0 + d0 * y, a1 + d1 * y, a2 + d2 * y, b0, b1, b2, mx, dy * dy,
+                                                opac, tw0, tw1, tw2, near32)
+                buf[T_RA + p] = al if (i >= lx0) & (i < lx1) else zero
+            finished = 0
+            for q in range(q0, q1):
+                p = np.uint64(q)
+                alpha = buf[T_RA + p]
+                tr = buf[p]
+                open_p = buf[T_OPEN + p]
+                live = (alpha > zero) & (open_p > zero)
+                t_next = tr * (one - alpha)
+                stop = live & (t_next < t_min)
+                blend = live & (t_next >= t_min)
+                buf[T_RW + p] = (one if count_pixels else alpha * tr) if blend else zero
+                buf[p] = t_next if blend else tr
+                buf[T_OPEN + p] = zero if stop else open_p
+                finished += np.int64(stop)
+            n_done += finished
+            # the blended lanes' weights into their labels' sums (w = 0 where not blended)
+            if n_lab <= TRACE_LABEL_PASSES:
+                # one pass per label: per-column sums over the rows (a vector loop), then the 16
+                # columns in order (most tiles hold one to three labels)
+                for loc in range(n_lab):
+                    lf = np.float32(loc)
+                    for i in range(TILE):
+                        buf[T_COL + np.uint64(i)] = zero
+                    for r in range(y0 - py0, y1 - py0):
+                        rb = np.uint64(r * TILE)
+                        for i in range(TILE):
+                            p = rb + np.uint64(i)
+                            buf[T_COL + np.uint64(i)] += buf[T_RW + p] if buf[T_LOC + p] == lf else zero
+                    for i in range(8):  # the columns' sum as a tree (a chain of 16 adds was the cost)
+                        buf[T_COL + np.uint64(i)] += buf[T_COL + np.uint64(i + 8)]
+                    for i in range(4):
+                        buf[T_COL + np.uint64(i)] += buf[T_COL + np.uint64(i + 4)]
+                    s01 = buf[T_COL] + buf[T_COL + np.uint64(2)]
+                    s23 = buf[T_COL + np.uint64(1)] + buf[T_COL + np.uint64(3)]
+                    table[j - start, loc] += s01 + s23
+            else:  # many labels (one per pixel: pixel_weights): each blended lane into its label
+                for q in range(q0, q1):
+                    w = buf[T_RW + np.uint64(q)]
+                    if w != zero:
+                        loc = local_of[q]
+                        if loc >= 0:
+                            table[j - start, loc] += w
             if n_done == n_pix:
                 break
         base = cap[b]
@@ -960,6 +993,122 @@ def trace_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, labe
             out_w[k] = weights[cap[b] + e]
             k += 1
     return out_rows, out_cols, out_w
+
+
+# Rows of one splat at most this long are sorted by insertion (a splat meets a few labels of a few
+# tiles); longer ones (one label per pixel: every pixel a splat covers) by a merge sort.
+INSERTION_SORT_MAX = 32
+
+
+@njit(parallel=True, cache=True)
+def coalesce_triplets(rows, cols, weights, n):
+    """The triplets of :func:`trace_kernel` as a coalesced sparse [n, T] matrix: sorted by row, then
+    column, a (row, column) that repeats across tiles summed in the order the triplets come.
+
+    The order of that sum is fixed by the tiles, so the result does not depend on the number of
+    threads (torch's ``coalesce`` sorts with an unstable sort whose order of equal keys changes with
+    the thread count: the weights' last bits did). Returns rows [E'] int64, cols [E'] int64,
+    weights [E'] float32 and the row pointers [n + 1] int64.
+    """
+    size = rows.shape[0]
+    start = np.zeros(n + 1, np.int64)
+    for e in range(size):
+        start[rows[e] + 1] += 1
+    for i in range(n):
+        start[i + 1] += start[i]
+    fill = start[:n].copy()
+    col_of = np.empty(size, np.int64)
+    w_of = np.empty(size, np.float32)
+    for e in range(size):  # by row, each row's entries in the order they came (a stable counting sort)
+        r = rows[e]
+        k = fill[r]
+        col_of[k] = cols[e]
+        w_of[k] = weights[e]
+        fill[r] = k + 1
+    distinct = np.zeros(n + 1, np.int64)
+    for r in prange(n):
+        a = start[r]
+        b = start[r + 1]
+        if b - a > INSERTION_SORT_MAX:
+            order = np.argsort(col_of[a:b], kind="mergesort")  # stable
+            cs = col_of[a:b][order]
+            ws = w_of[a:b][order]
+            col_of[a:b] = cs
+            w_of[a:b] = ws
+        else:
+            for i in range(a + 1, b):  # stable insertion sort by column
+                c = col_of[i]
+                v = w_of[i]
+                k = i - 1
+                while k >= a and col_of[k] > c:
+                    col_of[k + 1] = col_of[k]
+                    w_of[k + 1] = w_of[k]
+                    k -= 1
+                col_of[k + 1] = c
+                w_of[k + 1] = v
+        m = a
+        for i in range(a + 1, b):  # equal columns summed in place, front of the row's segment
+            if col_of[i] == col_of[m]:
+                w_of[m] = w_of[m] + w_of[i]
+            else:
+                m += 1
+                col_of[m] = col_of[i]
+                w_of[m] = w_of[i]
+        distinct[r + 1] = m - a + 1 if b > a else 0
+    for i in range(n):
+        distinct[i + 1] += distinct[i]
+    out_rows = np.empty(distinct[n], np.int64)
+    out_cols = np.empty(distinct[n], np.int64)
+    out_w = np.empty(distinct[n], np.float32)
+    for r in prange(n):
+        a = start[r]
+        o = distinct[r]
+        for i in range(distinct[r + 1] - o):
+            out_rows[o + i] = r
+            out_cols[o + i] = col_of[a + i]
+            out_w[o + i] = w_of[a + i]
+    return out_rows, out_cols, out_w, distinct
+
+
+@njit(inline="always")
+def _reduce_row(indptr, cols, weights, r):
+    tot = np.float32(0.0)
+    best = np.float32(0.0)
+    best_col = -1
+    for i in range(indptr[r], indptr[r + 1]):
+        v = weights[i]
+        tot = tot + v
+        if v > best:
+            best = v
+            best_col = cols[i]
+    if tot > np.float32(0.0) and best > np.float32(0.0):
+        return best_col, best / max(tot, np.float32(1e-30)), tot
+    return -1, np.float32(0.0), tot
+
+
+@njit(parallel=True, cache=True)
+def reduce_coalesced(indptr, cols, weights, label, prob, total):
+    """:func:`trace_argmax` of a coalesced sparse trace given as CSR (:func:`coalesce_triplets`),
+    written into label [n] int32 (the smallest column attaining the row's maximum; -1 where the row
+    has no weight), prob [n] float32 (max / total) and total [n] float32, bit for bit (a row's total
+    adds its columns in ascending order from zero, as ``index_add_`` does; tested)."""
+    for r in prange(indptr.shape[0] - 1):
+        label[r], prob[r], total[r] = _reduce_row(indptr, cols, weights, r)
+
+
+@njit(parallel=True, cache=True)
+def reduce_into_rows(indptr, cols, weights, rows, label, prob, total):
+    """:func:`reduce_coalesced` of a trace over the splats ``rows`` [R] (ascending) of N, written into
+    [N] arrays (strided views allowed: a column of an [N, views] table); the other splats get label
+    -1, probability 0 and total 0, as an unseen splat does."""
+    n = label.shape[0]
+    for i in prange(n):
+        label[i] = -1
+        prob[i] = np.float32(0.0)
+        total[i] = np.float32(0.0)
+    for r in prange(rows.shape[0]):
+        g = rows[r]
+        label[g], prob[g], total[g] = _reduce_row(indptr, cols, weights, r)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -1168,10 +1317,11 @@ def rasterize(proj: Projected, features: Tensor, width: int, height: int, backgr
 TRACE_BATCH_SLOTS = 1 << 22
 
 
-def trace_weights(proj: Projected, width: int, height: int, labels: Tensor, num_labels: int,
-                  near: float = 0.01, batch_slots: int = TRACE_BATCH_SLOTS, count_pixels: bool = False) -> Tensor:
-    """GIT weights of one view with the dedicated kernel: sparse COO [N, T] float32, coalesced
-    (pixel counts instead of weight sums with ``count_pixels``).
+def trace_triplets(proj: Projected, width: int, height: int, labels: Tensor, near: float = 0.01,
+                   batch_slots: int = TRACE_BATCH_SLOTS, count_pixels: bool = False
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """GIT weights of one view as the kernel gives them: rows [E] int64 (splat), cols [E] int64
+    (label), weights [E] float32, non-zero only, in tile order; a (row, col) may repeat across tiles.
 
     Tiles are traced in batches whose worst case (tile entries x distinct labels) stays under
     ``batch_slots``, so memory is bounded by one batch plus the non-zero output.
@@ -1193,14 +1343,9 @@ def trace_weights(proj: Projected, width: int, height: int, labels: Tensor, num_
                                   binning.height, binning.tiles_x, float(near), lab, batch, n_local,
                                   bool(count_pixels)))
         start = stop
-    n = proj.depths.shape[0]
-    dev = proj.depths.device
+    if len(parts) == 1:
+        return parts[0]
     if parts:
-        rows = np.concatenate([p[0] for p in parts])
-        cols = np.concatenate([p[1] for p in parts])
-        w = np.concatenate([p[2] for p in parts])
-    else:
-        rows = cols = np.zeros(0, np.int64)
-        w = np.zeros(0, np.float32)
-    idx = torch.from_numpy(np.stack([rows, cols])) if rows.size else torch.zeros(2, 0, dtype=torch.int64)
-    return torch.sparse_coo_tensor(idx, torch.from_numpy(w), (n, num_labels), check_invariants=False).coalesce().to(dev)
+        return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
+                np.concatenate([p[2] for p in parts]))
+    return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32)

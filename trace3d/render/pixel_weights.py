@@ -7,7 +7,7 @@ With the geometry frozen, the feature rendered at pixel x is linear in the per-G
 where w_k(x) = alpha_k(x) T_k(x) is splat k's blending weight at x. :func:`pixel_weights` computes
 these weights once for a view (or a subset of its pixels) as a CSR matrix A [P, N] (pixels x
 Gaussians) with a tracing pass over the rasterizer's tiles: GIT with one label per pixel, so the
-same kernel (:func:`trace3d.render.kernels.trace_weights`) and the same early termination as the
+same kernel (:func:`trace3d.render.kernels.trace_triplets`) and the same early termination as the
 rasterizer. A feature render is then ``A @ f`` and its gradient ``A^T @ g`` (:meth:`PixelWeights.render`).
 The twin is :func:`trace3d.render.render` with features requiring grad (tests compare both, values
 and gradients).
@@ -217,7 +217,8 @@ def pixel_weights(splats: Splats, camera: Camera, pixels: Optional[np.ndarray] =
     Returns:
         :class:`PixelWeights` whose row r holds w_k(pixels[r]) for every splat k with non-zero weight.
     """
-    from .core import trace
+    from .core import _check_labels, traced_triplets
+    from .kernels import coalesce_triplets
 
     n = check_splats(splats)
     hw = camera.height * camera.width
@@ -233,12 +234,8 @@ def pixel_weights(splats: Splats, camera: Camera, pixels: Optional[np.ndarray] =
     if pixels.size == 0:
         return PixelWeights(pixels, np.zeros(1, np.int64), np.zeros(0, np.int32), np.zeros(0, np.float32), n,
                             camera.width, camera.height)
-    coo = trace(splats, camera, torch.from_numpy(labels.reshape(camera.height, camera.width)), int(pixels.size),
-                near=near, backend="numba")
-    gauss, row = coo.indices().numpy()
-    vals = coo.values().numpy().astype(np.float32)
-    order = np.lexsort((gauss, row))
-    row, gauss, vals = row[order], gauss[order], vals[order]
-    indptr = np.zeros(pixels.size + 1, np.int64)
-    np.cumsum(np.bincount(row, minlength=pixels.size), out=indptr[1:])
+    lab = _check_labels(torch.from_numpy(labels.reshape(camera.height, camera.width)), camera, int(pixels.size))
+    seen, gauss, row, vals = traced_triplets(splats, camera, lab, near)
+    # by pixel, then Gaussian (a pixel's entries are distinct: it lies in one tile)
+    _, gauss, vals, indptr = coalesce_triplets(row, seen[gauss], vals, int(pixels.size))
     return PixelWeights(pixels, indptr, gauss.astype(np.int32), vals, n, camera.width, camera.height)

@@ -79,15 +79,6 @@ class GITStats:
         return out
 
 
-def reduce_trace(weights: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Argmax label [N] int32 (-1 unseen), probability [N] and total [N] of one view's sparse [N, T] trace."""
-    from ..render import trace_argmax
-
-    label, prob, total = trace_argmax(weights)
-    return (label.cpu().numpy().astype(np.int32), prob.cpu().numpy().astype(np.float32),
-            total.cpu().numpy().astype(np.float32))
-
-
 @torch.no_grad()
 def trace_views(model: GaussianModel, cameras: Sequence[Camera], label_maps: Sequence[np.ndarray],
                 count_pixels: bool = False, near: float = 0.01, progress: bool = False) -> GITStats:
@@ -102,7 +93,7 @@ def trace_views(model: GaussianModel, cameras: Sequence[Camera], label_maps: Seq
     Returns:
         :class:`GITStats`.
     """
-    from ..render import trace
+    from ..render import trace_reduced
 
     if len(cameras) != len(label_maps):
         raise ValueError(f"trace_views: {len(cameras)} cameras but {len(label_maps)} label maps.")
@@ -117,8 +108,8 @@ def trace_views(model: GaussianModel, cameras: Sequence[Camera], label_maps: Seq
     for v, (cam, labels) in enumerate(bar):
         labels_t = torch.from_numpy(np.asarray(labels).astype(np.int64))
         t = int(labels_t.max()) + 1 if labels_t.numel() else 1
-        weights = trace(splats, cam, labels_t, max(t, 1), near=near, count_pixels=count_pixels)
-        label[:, v], prob[:, v], visibility[:, v] = reduce_trace(weights)
+        trace_reduced(splats, cam, labels_t, max(t, 1), near=near, count_pixels=count_pixels,
+                      out=(label[:, v], prob[:, v], visibility[:, v]))
         num_labels[v] = t
     return GITStats(label=label, prob=prob, visibility=visibility, frames=[c.name for c in cameras],
                     num_labels=num_labels)
