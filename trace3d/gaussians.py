@@ -44,6 +44,7 @@ import torch.nn.functional as F
 from .errors import SceneFormatError, Trace3DError
 from .geometry import quat_to_rotmat
 from .io import atomic_file
+from .threads import torch_threads
 
 if TYPE_CHECKING:  # pragma: no cover
     from .render import Splats
@@ -311,15 +312,20 @@ class GaussianModel:
         return all_finite(t for t in self.tensors().values() if t.is_floating_point())
 
     # --- activations ---------------------------------------------------------------------------
+    # The activations run on one torch thread: torch computes the last elements of each thread's share
+    # with its scalar formula, the others with its vector one, and the two can differ in the last bit,
+    # so with more threads a few values would change with the thread count (the fit runs them on one).
     @property
     def scales(self) -> torch.Tensor:
         """[N, 2] positive tangent scales."""
-        return torch.exp(self.log_scales)
+        with torch_threads(1):
+            return torch.exp(self.log_scales)
 
     @property
     def opacities(self) -> torch.Tensor:
         """[N] opacities in (0, 1)."""
-        return torch.sigmoid(self.opacity_logits)
+        with torch_threads(1):
+            return torch.sigmoid(self.opacity_logits)
 
     @property
     def rotations(self) -> torch.Tensor:
