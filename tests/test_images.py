@@ -117,7 +117,7 @@ def test_colmap_registers_and_the_fit_runs(capture, imported, tmp_path):
     truth, _, _ = capture
     poses = tmp_path / "poses"
     assert cli_main(["--threads", "2", "poses", "--scene", str(imported.root), "--out", str(poses),
-                     "--params", json.dumps({"seed": 0})]) == 0
+                     "--params", json.dumps({"seed": 0, "num_threads": -1})]) == 0
     sfm = json.loads((poses / "sfm.json").read_text())
     assert sfm["images_registered"] == NUM_VIEWS and sfm["frame"] == "colmap"
     assert sfm["params"]["num_threads"] == 2  # -1 (all cores) became the --threads budget

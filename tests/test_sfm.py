@@ -263,6 +263,17 @@ def test_registers_every_view_within_two_percent(room, room_sfm):
     assert report["single_camera"] is True
 
 
+def test_default_poses_are_reproducible_whatever_the_thread_budget(room, room_sfm, tmp_path):
+    # COLMAP with several threads gave different cameras from run to run (2026-11-26): the default is
+    # one thread, whatever `trace3d --threads` allows
+    again = tmp_path / "again"
+    assert cli_main(["--threads", "2", "poses", "--scene", str(room.root), "--out", str(again),
+                     "--params", json.dumps({"seed": 0})]) == 0
+    assert load_report(again)["params"]["num_threads"] == 1
+    for name in ("cameras.json", "points3D.ply"):
+        assert (again / name).read_bytes() == (room_sfm / name).read_bytes(), name
+
+
 def test_outputs_live_in_the_scene_frame(room, room_sfm):
     poses = Scene.read(room_sfm, check_files=False)
     # every frame, same names and splits, in scene order; known intrinsics kept fixed
