@@ -365,11 +365,9 @@ def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, ne
             q1 = (y1 - py0) * TILE
             # pass 1: alpha (0 outside the footprint box) and depth of every lane
             for q in range(q0, q1):
-                p, i, x, y, dy = _lane_position(q, px0, py0, my)
-                al, zz, _, _, _, _, _ = eval_lane(x, a0 + d0 * y, a1 + d1 * y, a2 + d2 * y, b0, b1, b2, mx, dy * dy,
-                                                 opac, tw0, tw1, tw2, near32)
-                inside = (i >= lx0) & (i < lx1)
-                buf[F_RA + p] = al if inside else zero
+                p, al, zz = _lane_alpha(q, px0, py0, lx0, lx1, a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2,
+                                        mx, my, opac, near32)
+                buf[F_RA + p] = al
                 buf[F_RZ + p] = zz
             # pass 2: blend every open lane (selects, no branches)
             finished = 0
@@ -503,6 +501,16 @@ def _lane_position(q, px0, py0, my):
     i = q & (TILE - 1)
     y = np.float32(py0 + (q >> 4)) + np.float32(0.5)
     return np.uint64(q), i, np.float32(px0 + i) + np.float32(0.5), y, y - my
+
+
+@njit(inline="always", fastmath=FASTMATH)
+def _lane_alpha(q, px0, py0, lx0, lx1, a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2, mx, my, opac, near32):
+    """Lane ``q`` of a splat's footprint rows in a tile: its buffer index, alpha (0 outside the box's
+    columns [lx0, lx1)) and depth (the forward and trace kernels' first pass)."""
+    p, i, x, y, dy = _lane_position(q, px0, py0, my)
+    al, zz, _, _, _, _, _ = eval_lane(x, a0 + d0 * y, a1 + d1 * y, a2 + d2 * y, b0, b1, b2, mx, dy * dy, opac, tw0,
+                                     tw1, tw2, near32)
+    return p, (al if (i >= lx0) & (i < lx1) else np.float32(0.0)), zz
 
 
 @njit(inline="always", fastmath=FASTMATH)
@@ -919,10 +927,9 @@ def trace_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, labe
             # every lane of the footprint's rows in one loop per pass, as in forward_kernel: alpha (0
             # outside the box), then the blend of the open lanes without branches
             for q in range(q0, q1):
-                p, i, x, y, dy = _lane_position(q, px0, py0, my)
-                al, _, _, _, _, _, _ = eval_lane(x, a0 + d0 * y, a1 + d1 * y, a2 + d2 * y, b0, b1, b2, mx, dy * dy,
-                                                opac, tw0, tw1, tw2, near32)
-                buf[T_RA + p] = al if (i >= lx0) & (i < lx1) else zero
+                p, al, _ = _lane_alpha(q, px0, py0, lx0, lx1, a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2,
+                                       mx, my, opac, near32)
+                buf[T_RA + p] = al
             finished = 0
             for q in range(q0, q1):
                 p = np.uint64(q)
