@@ -238,7 +238,7 @@ def trace_reduced(splats: Splats, camera: Camera, labels: Tensor, num_labels: in
     such arrays, strided views allowed: a column of an [N, views] table) when given.
 
     The numba back end reduces the kernel's coalesced triplets directly
-    (:func:`~trace3d.render.kernels.reduce_coalesced`, bit for bit :func:`trace_argmax` of
+    (:func:`~trace3d.render.kernels.reduce_into_rows`, bit for bit :func:`trace_argmax` of
     :func:`trace`, tested) instead of building the [N, T] sparse tensor and reducing it with torch.
     """
     n = check_splats(splats)

@@ -1094,20 +1094,13 @@ def _reduce_row(indptr, cols, weights, r):
 
 
 @njit(parallel=True, cache=True)
-def reduce_coalesced(indptr, cols, weights, label, prob, total):
-    """:func:`trace_argmax` of a coalesced sparse trace given as CSR (:func:`coalesce_triplets`),
-    written into label [n] int32 (the smallest column attaining the row's maximum; -1 where the row
-    has no weight), prob [n] float32 (max / total) and total [n] float32, bit for bit (a row's total
-    adds its columns in ascending order from zero, as ``index_add_`` does; tested)."""
-    for r in prange(indptr.shape[0] - 1):
-        label[r], prob[r], total[r] = _reduce_row(indptr, cols, weights, r)
-
-
-@njit(parallel=True, cache=True)
 def reduce_into_rows(indptr, cols, weights, rows, label, prob, total):
-    """:func:`reduce_coalesced` of a trace over the splats ``rows`` [R] (ascending) of N, written into
-    [N] arrays (strided views allowed: a column of an [N, views] table); the other splats get label
-    -1, probability 0 and total 0, as an unseen splat does."""
+    """:func:`~trace3d.render.trace_argmax` of a coalesced sparse trace over the splats ``rows`` [R]
+    (ascending) of N, given as CSR over R (:func:`coalesce_triplets`), written into label [N] int32
+    (the smallest column attaining the row's maximum; -1 where the splat has no weight or is not in
+    ``rows``), prob [N] float32 (max / total, 0 there) and total [N] float32; strided views allowed
+    (a column of an [N, views] table). Bit for bit trace_argmax: a row's total adds its columns in
+    ascending order from zero, as ``index_add_`` does (tested)."""
     n = label.shape[0]
     for i in prange(n):
         label[i] = -1

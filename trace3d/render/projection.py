@@ -330,9 +330,10 @@ def frustum_planes(K: np.ndarray, width: int, height: int, margin: float = PREFI
     product with every normal is >= 0."""
     lo_x, lo_y, hi_x, hi_y = -margin, -margin, width + margin, height + margin
     # the corners' rays K^-1 (u, v, 1), in order around the rectangle, and the centre's
-    rays = np.linalg.solve(np.asarray(K, np.float64), np.array([[lo_x, hi_x, hi_x, lo_x, width / 2.0],
-                                                               [lo_y, lo_y, hi_y, hi_y, height / 2.0],
-                                        [1.0, 1.0, 1.0, 1.0, 1.0]])).T
+    corners = np.array([[lo_x, hi_x, hi_x, lo_x, width / 2.0],
+                        [lo_y, lo_y, hi_y, hi_y, height / 2.0],
+                        [1.0, 1.0, 1.0, 1.0, 1.0]])
+    rays = np.linalg.solve(np.asarray(K, np.float64), corners).T
     planes = np.cross(rays[:4], rays[[1, 2, 3, 0]])
     planes /= np.linalg.norm(planes, axis=1, keepdims=True)
     planes *= np.sign(planes @ rays[4])[:, None]
