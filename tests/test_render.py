@@ -627,3 +627,13 @@ def test_row_gather_equals_numpy_fancy_indexing():
     out = gather_rows_as(geom, rows, np.float32)
     assert out.dtype == np.float32 and out.flags.c_contiguous and np.array_equal(out, geom[rows])
     assert gather_rows_as(geom, rows[:0], np.float32).shape == (0, 16)
+
+
+def test_render_bench_runs_and_reports_its_figures():
+    from trace3d.render.bench import run_bench
+
+    result = run_bench(quick=True)
+    for key in ("speedup_fwd_bwd", "trace_over_forward", "pair_evals_per_s"):
+        assert result[key] > 0, key
+    kernel = result["large"]["kernel"]
+    assert kernel["pairs"] > 0 and kernel["trace_ms"] > 0 and kernel["kernel_forward_ms"] > 0

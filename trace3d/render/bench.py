@@ -116,8 +116,10 @@ def _pairs_per_second(splats: Splats, camera: Camera, features: torch.Tensor, re
         binning = Binning(proj, camera.width, camera.height)
         geom = _geom_array(pack_geometry(proj))
         vals = np.ascontiguousarray(torch.cat([features, proj.normals], 1).numpy().astype(np.float32))
+    # every channel to the head, nothing folded in (the kernel's plain blend)
     args = (binning.entry_geometry(geom), binning.entry_boxes, binning.lists, vals, binning.offsets,
-            binning.width, binning.height, binning.tiles_x, 0.01)
+            binning.width, binning.height, binning.tiles_x, 0.01, vals.shape[1], np.zeros(vals.shape[1], np.float32),
+            False)
     pairs = int(forward_kernel(*args)[-1].sum())
     ms = _time(lambda: forward_kernel(*args), repeats)
     cpu0 = time.process_time()
