@@ -741,6 +741,43 @@ def test_bench_fit_compare_and_baseline_checks(tmp_path):
         bench.run_baseline(tmp_path, None, None, quick=True)
 
 
+def test_bench_fit_rounds_alternate_with_the_baseline_and_pair_up(monkeypatch, tmp_path):
+    """--rounds: baseline and current runs alternate; per size the median round is reported (a real
+    round, not per-field medians), and the speedup is the median of the round pairs' ratios."""
+    from trace3d.cli import main
+    from trace3d.training import bench
+
+    calls = []
+    cur_ms = iter([10.0, 30.0, 20.0])
+    base_ms = iter([20.0, 30.0, 60.0])
+
+    def fake(ms_iter, who):
+        ms = next(ms_iter)
+        calls.append(who)
+        return {"torch_threads": 1, "load_average": [0.0, 0.0, 0.0],
+                "sizes": {"8x8": {"ms_per_iteration": ms, "iterations_per_s": 1000.0 / ms, "kernel_share": ms / 100,
+                                  "phases_ms": {"other": ms}}}}
+
+    monkeypatch.setattr(bench, "run_bench", lambda **kw: fake(cur_ms, "current"))
+    monkeypatch.setattr(bench, "run_baseline", lambda *a: {**fake(base_ms, "baseline"), "commit": "abc"})
+    out = bench.run_rounds(3, baseline=tmp_path)
+    assert calls == ["baseline", "current"] * 3
+    row = out["sizes"]["8x8"]
+    assert row["rounds_ms_per_iteration"] == [10.0, 30.0, 20.0] and row["round"] == 2
+    assert row["ms_per_iteration"] == 20.0 and row["rounds_kernel_share"] == [0.1, 0.3, 0.2]
+    assert out["rounds"] == 3 and out["baseline"]["commit"] == "abc"
+    assert out["baseline"]["sizes"]["8x8"]["ms_per_iteration"] == 30.0
+    cmp = out["compared"]["8x8"]
+    assert cmp["speedups"] == pytest.approx([2.0, 1.0, 3.0])
+    assert cmp["speedup"] == pytest.approx(2.0)  # the median pair, not 30 / 20 = 1.5
+    # an even count takes the lower of the middle two
+    two = bench.median_round([fake(iter([40.0]), "x"), fake(iter([10.0]), "x")])
+    assert two["sizes"]["8x8"]["ms_per_iteration"] == 10.0
+    with pytest.raises(ValueError, match="rounds must be >= 1"):
+        bench.run_rounds(0)
+    assert main(["bench", "fit", "--rounds", "0"]) == 2
+
+
 def test_density_statistics_kernel_matches_torch_lines():
     """add_stats' fused pass gives bit for bit the statistics of its masked torch updates."""
     from trace3d.training import strategy as st

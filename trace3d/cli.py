@@ -275,19 +275,13 @@ def _cmd_bench(args: argparse.Namespace) -> None:
 
         result = run_bench(quick=args.quick)
     elif args.name == "fit":
-        from .training.bench import run_bench
+        from .training.bench import run_rounds
 
         sizes = [_parse_size(text) for text in args.size] if args.size else None
-        baseline = None
-        if args.baseline:
-            from .training.bench import run_baseline
-
-            baseline = run_baseline(Path(args.baseline), sizes, args.iterations, args.quick)
-        result = run_bench(quick=args.quick, sizes=sizes, iterations=args.iterations)
-        if baseline is not None:
-            from .training.bench import compare
-
-            result = {**result, "baseline": baseline, "compared": compare(result, baseline)}
+        if args.rounds < 1:
+            raise Trace3DError(f"bench fit: --rounds must be >= 1, got {args.rounds}.")
+        result = run_rounds(args.rounds, quick=args.quick, sizes=sizes, iterations=args.iterations,
+                            baseline=Path(args.baseline) if args.baseline else None)
     elif args.name == "fit-sweep":
         from .training.bench import run_sweep
 
@@ -506,6 +500,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--baseline", metavar="CHECKOUT",
                    help="fit: also run this checkout's fit benchmark first (e.g. a git worktree of the previous "
                         "main) and report both side by side")
+    p.add_argument("--rounds", type=int, default=1,
+                   help="fit: run the benchmark this many times (alternating with --baseline's) and report the "
+                        "median round per size, every round's time and, with --baseline, each round pair's "
+                        "speedup and their median (default 1)")
     p.add_argument("--rooms", dest="room_list", nargs="+", help="fit-sweep: rooms' results folders (scene/, poses/)")
     p.add_argument("--budgets", nargs="+", default=["20000", "40000", "80000"],
                    help="fit-sweep: Gaussian budgets (max_gaussians)")

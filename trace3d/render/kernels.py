@@ -1119,17 +1119,19 @@ def reduce_into_rows(indptr, cols, weights, rows, label, prob, total):
 @njit(parallel=True, cache=True)
 def copy_rows(dsts, srcs, rows, scatter):
     """For every pair k of 2D arrays: dsts[k][j] = srcs[k][rows[j]] (gather), or with ``scatter``
-    dsts[k][rows[j]] = srcs[k][j]; one parallel pass over the rows for all of them (values cast to
-    the destination's dtype)."""
-    for j in prange(rows.shape[0]):
-        i = np.int64(rows[j])
-        jj = np.int64(j)
-        d = i if scatter else jj
-        s_ = jj if scatter else i
-        for k in range(len(dsts)):
-            dst = dsts[k]
-            src = srcs[k]
-            for c in range(dst.shape[1]):
+    dsts[k][rows[j]] = srcs[k][j] (values cast to the destination's dtype); one parallel pass over the
+    rows per pair.  (One pass over the rows for all pairs at once was 1.7x slower on arrays that are not
+    in the cache, as in a fit: it reads and writes as many streams at once as there are pairs.)"""
+    for k in range(len(dsts)):
+        dst = dsts[k]
+        src = srcs[k]
+        width = dst.shape[1]
+        for j in prange(rows.shape[0]):
+            i = np.int64(rows[j])
+            jj = np.int64(j)
+            d = i if scatter else jj
+            s_ = jj if scatter else i
+            for c in range(width):
                 dst[d, c] = src[s_, c]
 
 

@@ -375,11 +375,63 @@ def run_baseline(checkout: Path, sizes: list[tuple[int, int]] | None, iterations
 
 
 def compare(current: dict, baseline: dict) -> dict:
-    """Per size: iterations/s of both and their ratio."""
+    """Per size: iterations/s of both and their ratio.  With rounds (:func:`median_round`), also the
+    ratio of each round pair (``speedups``: baseline round r against current round r, run one after the
+    other) and ``speedup`` is their median, not the ratio of the medians."""
     out = {}
     for size, row in current["sizes"].items():
         base = baseline["sizes"].get(size)
         if base:
             out[size] = {"iterations_per_s": row["iterations_per_s"], "baseline_iterations_per_s": base["iterations_per_s"],
                          "speedup": row["iterations_per_s"] / base["iterations_per_s"]}
+            cur_rounds, base_rounds = row.get("rounds_ms_per_iteration"), base.get("rounds_ms_per_iteration")
+            if cur_rounds and base_rounds and len(cur_rounds) == len(base_rounds):
+                pairs = sorted(b / c for b, c in zip(base_rounds, cur_rounds))
+                out[size]["speedups"] = [b / c for b, c in zip(base_rounds, cur_rounds)]
+                out[size]["speedup"] = pairs[(len(pairs) - 1) // 2]
     return out
+
+
+def median_round(results: list[dict]) -> dict:
+    """Several runs of the benchmark (rounds) as one result: per size, the round with the median
+    ``ms_per_iteration`` (the lower one of the middle two for an even count; a real run, so its phases
+    add up), plus every round's ``ms_per_iteration`` and ``kernel_share`` (``rounds_ms_per_iteration``,
+    ``rounds_kernel_share``, in run order).  The machine drifts by several percent between runs minutes
+    apart (docs/performance.md), more than many changes are worth: alternating rounds of the baseline
+    and the current code and pairing them is how a small change is measured."""
+    if not results:
+        raise ValueError("median_round: no rounds")
+    out = {k: v for k, v in results[0].items() if k != "sizes"}
+    out["rounds"] = len(results)
+    out["load_average"] = [r.get("load_average") for r in results]
+    out["sizes"] = {}
+    for size in results[0]["sizes"]:
+        rows = [r["sizes"][size] for r in results]
+        ms = [row["ms_per_iteration"] for row in rows]
+        pick = sorted(range(len(rows)), key=lambda i: ms[i])[(len(rows) - 1) // 2]
+        out["sizes"][size] = {**rows[pick], "round": pick, "rounds_ms_per_iteration": ms,
+                              "rounds_kernel_share": [row["kernel_share"] for row in rows]}
+    return out
+
+
+def run_rounds(rounds: int, quick: bool = False, sizes: list[tuple[int, int]] | None = None,
+               iterations: int | None = None, baseline: Path | None = None) -> dict:
+    """``rounds`` runs of :func:`run_bench` (each after a run of ``baseline``'s benchmark when given:
+    baseline, current, baseline, current, ...), summarised by :func:`median_round`; with a baseline,
+    ``baseline`` (its rounds, summarised the same way) and ``compared`` (:func:`compare`) are added."""
+    if rounds < 1:
+        raise ValueError(f"bench fit: rounds must be >= 1, got {rounds}")
+    currents, bases = [], []
+    for r in range(rounds):
+        if baseline is not None:
+            log.info("bench fit: round %d of %d, baseline", r + 1, rounds)
+            bases.append(run_baseline(baseline, sizes, iterations, quick))
+        log.info("bench fit: round %d of %d, current code", r + 1, rounds)
+        currents.append(run_bench(quick=quick, sizes=sizes, iterations=iterations))
+    result = median_round(currents) if rounds > 1 else currents[0]
+    if bases:
+        base = median_round(bases) if rounds > 1 else bases[0]
+        for key in ("checkout", "commit"):
+            base[key] = bases[0].get(key)
+        result = {**result, "baseline": base, "compared": compare(result, base)}
+    return result
