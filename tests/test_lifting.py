@@ -316,6 +316,28 @@ def test_query_points_on_a_toy_feature_map():
         find_query_points(fmap, np.zeros((H, W), bool))
 
 
+@pytest.mark.parametrize("d", [1, 7, 8, 13, 16, 24, 128, 129])
+def test_query_kernels_give_numpys_distances_and_masks_to_the_bit(d):
+    """The numba distances and masks (evaluation's hot path) against the numpy twin: the same float32
+    distances bit for bit (numpy's pairwise sum order over D: below 8, multiples of 8, a rest, the
+    128 limit; 129 takes numpy itself), and the same masks with each threshold set to a distance that
+    occurs, so that "<=" is decided by the last bit."""
+    from trace3d.lifting.query import QueryPoints
+
+    rng = np.random.default_rng(d)
+    fmap = (rng.standard_normal((23, 29, d)) * 3.0).astype(np.float32)
+    feats = np.ascontiguousarray(fmap[rng.integers(0, 23, 4), rng.integers(0, 29, 4)]
+                                 + rng.standard_normal((4, d)).astype(np.float32) * 0.1, dtype=np.float32)
+    q = QueryPoints(feats, np.zeros(4, np.float32), np.zeros((4, 2), np.int64), np.zeros(4, np.float32))
+    got, want = q.distances(fmap), q.distances_numpy(fmap)
+    assert got.dtype == want.dtype == np.float32
+    assert np.array_equal(got.view(np.uint32), want.view(np.uint32))
+    q.thresholds = np.array([np.sort(want[k].ravel())[100 + 50 * k] for k in range(4)], np.float32)
+    mask = q.mask(fmap)
+    assert np.array_equal(mask, (want <= q.thresholds[:, None, None]).any(0))
+    assert 0 < mask.sum() < mask.size
+
+
 # ----------------------------------------------------------------------------------------------
 # Lifting separates two objects
 # ----------------------------------------------------------------------------------------------

@@ -152,10 +152,12 @@ def _moment_planes(a, b, cross):
     return stats
 
 
-@njit(parallel=True, cache=True)
+@njit(cache=True)
 def _target_stats(y, g):
     """The target's blurred statistics (mean of y, mean of y^2) [2C, H, W] of y [H, W, C]: they do
-    not depend on the image, so a training view computes them once (:class:`_TargetStats`)."""
+    not depend on the image, so a training view computes them once (:class:`_TargetStats`).  Not
+    ``parallel`` itself (it has no loop of its own; numba warned about the flag): the two kernels it
+    calls are."""
     stats = _moment_planes(y, y, False)
     blurred = np.empty_like(stats)
     _blur(stats, g, blurred)
