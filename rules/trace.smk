@@ -65,7 +65,7 @@ rule refine:
         p=preset_params("refine"),
         labels=refine_labels_arg,
         code=code_version("scene.py", "render", "gaussians.py", "tracing/__init__.py", "tracing/git.py",
-                           "tracing/refine.py", "training", "losses.py"),
+                           "tracing/refine.py", "training", "losses.py", "loss_kernels.py"),
     threads: 2
     resources:
         mem_mb=4000,
