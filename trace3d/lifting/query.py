@@ -76,16 +76,11 @@ class QueryPoints:
 
     def distances(self, feature_map: np.ndarray) -> np.ndarray:
         """[Q, H, W] distances of every pixel's feature to each query feature."""
-        if _kernel_applies(feature_map, self.features):
-            out = np.empty((self.features.shape[0],) + feature_map.shape[:2], np.float32)
-            _query_distances(feature_map, self.features, out)
-            return out
-        return self.distances_numpy(feature_map)
+        return query_distances(feature_map, self.features)
 
     def distances_numpy(self, feature_map: np.ndarray) -> np.ndarray:
         """:meth:`distances` in numpy (the twin of the kernel; any dtype)."""
-        diff = feature_map[None] - self.features[:, None, None, :]
-        return np.sqrt((diff * diff).sum(-1))
+        return _query_distances_numpy(feature_map, self.features)
 
     def mask(self, feature_map: np.ndarray) -> np.ndarray:
         """[H, W] bool: the union over query points of distance <= threshold."""
@@ -96,6 +91,21 @@ class QueryPoints:
             _query_mask(feature_map, self.features, self.thresholds, out)
             return out
         return (self.distances_numpy(feature_map) <= self.thresholds[:, None, None]).any(0)
+
+
+def query_distances(feature_map: np.ndarray, features: np.ndarray) -> np.ndarray:
+    """[Q, H, W] distances of every pixel's feature [H, W, D] to each of ``features`` [Q, D]: one numba
+    pass for float32 inputs (numpy's values to the bit, below), else numpy."""
+    if _kernel_applies(feature_map, features):
+        out = np.empty((features.shape[0],) + feature_map.shape[:2], np.float32)
+        _query_distances(feature_map, features, out)
+        return out
+    return _query_distances_numpy(feature_map, features)
+
+
+def _query_distances_numpy(feature_map: np.ndarray, features: np.ndarray) -> np.ndarray:
+    diff = feature_map[None] - features[:, None, None, :]
+    return np.sqrt((diff * diff).sum(-1))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -227,7 +237,7 @@ def find_query_points(feature_map: np.ndarray, mask: np.ndarray, params: QueryPa
     while len(feats) < params.max_queries:
         x, y = deepest_pixel(region)
         q = feature_map[y, x]
-        dist = np.sqrt(((feature_map - q) ** 2).sum(-1)).astype(np.float32)
+        dist = query_distances(feature_map, q[None])[0].astype(np.float32, copy=False)
         t, score = _best_threshold(dist, covered, mask, params.threshold_steps, params.min_precision)
         if feats and score <= best_iou + params.min_gain:
             break

@@ -386,9 +386,9 @@ def compare(current: dict, baseline: dict) -> dict:
                          "speedup": row["iterations_per_s"] / base["iterations_per_s"]}
             cur_rounds, base_rounds = row.get("rounds_ms_per_iteration"), base.get("rounds_ms_per_iteration")
             if cur_rounds and base_rounds and len(cur_rounds) == len(base_rounds):
-                pairs = sorted(b / c for b, c in zip(base_rounds, cur_rounds))
-                out[size]["speedups"] = [b / c for b, c in zip(base_rounds, cur_rounds)]
-                out[size]["speedup"] = pairs[(len(pairs) - 1) // 2]
+                speedups = [b / c for b, c in zip(base_rounds, cur_rounds)]
+                out[size]["speedups"] = speedups
+                out[size]["speedup"] = sorted(speedups)[(len(speedups) - 1) // 2]
     return out
 
 
