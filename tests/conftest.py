@@ -11,6 +11,11 @@ import pytest
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(__file__).resolve().parent.parent / ".numba_cache"))
+# the CPU target the entry points compile for (512-bit vectors on AVX-512 CPUs), so that the tests
+# run the code the pipeline runs; imports llvmlite only, not numba
+from trace3d.cputarget import set_wide_vectors  # noqa: E402
+
+set_wide_vectors()
 
 
 @pytest.fixture

@@ -35,8 +35,15 @@ def _entry_point_environment() -> None:
     explicit value in the environment is respected.  Numba's compile cache is left to
     ``NUMBA_CACHE_DIR`` when set (the Makefile and the rules point it at the checkout's
     ``.numba_cache/``), else to numba's default (``__pycache__`` beside the sources).
+
+    ``NUMBA_CPU_FEATURES`` with 512-bit vectors preferred on AVX-512 CPUs (:mod:`trace3d.cputarget`:
+    LLVM's Intel models split the kernels' 16-lane loops into two 256-bit halves otherwise), unless the
+    environment names a CPU target already.
     """
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    from .cputarget import set_wide_vectors
+
+    set_wide_vectors()
 
 
 def _command_environment(args: argparse.Namespace) -> None:

@@ -32,6 +32,7 @@ import numba
 import numpy as np
 import torch
 
+from ..cputarget import describe
 from ..scene import Camera
 from .core import render, trace
 from .kernels import Binning, _geom_array, forward_kernel, pack_geometry
@@ -147,6 +148,7 @@ def run_bench(quick: bool = False) -> dict:
     result: dict = {
         "threads": {"numba": numba.get_num_threads(), "torch": torch.get_num_threads(),
                     "cpu_count": os.cpu_count(), "numba_threading_layer": numba.config.THREADING_LAYER},
+        "cpu": describe(),
         "load_average_at_start": list(os.getloadavg()),
         "warmup_and_compile_s": compile_s,
     }

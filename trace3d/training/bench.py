@@ -212,6 +212,7 @@ def run_bench(quick: bool = False, sizes: list[tuple[int, int]] | None = None,
     iterations, a smoke run)."""
     import numba
 
+    from ..cputarget import describe
     from ..render.glue_kernels import fused_enabled
 
     gaussians = 5000 if quick else 80_000
@@ -227,7 +228,7 @@ def run_bench(quick: bool = False, sizes: list[tuple[int, int]] | None = None,
     out = {"torch_threads": torch.get_num_threads(), "fit_torch_threads": TrainParams().torch_threads,
            "numba_threads": numba.get_num_threads(),
            "gaussians": gaussians, "quick": quick, "fused_glue": fused_enabled(),
-           "sparse_grad": TrainParams().sparse_grad, "sizes": {}}
+           "sparse_grad": TrainParams().sparse_grad, "cpu": describe(), "sizes": {}}
     with tempfile.TemporaryDirectory(prefix="trace3d-bench-fit-") as tmp:
         for size in sizes:
             log.info("bench fit: %dx%d, %d Gaussians, %d iterations", size[0], size[1], gaussians, iterations)
@@ -347,6 +348,8 @@ def run_baseline(checkout: Path, sizes: list[tuple[int, int]] | None, iterations
     import subprocess
     import sys
 
+    from ..cputarget import set_here
+
     checkout = Path(checkout).resolve()
     if not (checkout / "trace3d" / "training" / "bench.py").is_file():
         raise FileNotFoundError(f"{checkout}: not a trace3d checkout with a fit benchmark (trace3d/training/bench.py).")
@@ -362,6 +365,10 @@ def run_baseline(checkout: Path, sizes: list[tuple[int, int]] | None, iterations
             cmd += ["--iterations", str(iterations)]
         env = {**os.environ, "PYTHONPATH": str(checkout) + os.pathsep + os.environ.get("PYTHONPATH", ""),
                "NUMBA_CACHE_DIR": str(Path(tmp) / "numba_cache")}
+        # the CPU target this process's entry point chose is the current code's choice, not the
+        # baseline's: its own entry point makes its own (a value the user set stays)
+        if set_here() is not None and env.get("NUMBA_CPU_FEATURES") == set_here():
+            del env["NUMBA_CPU_FEATURES"]
         log.info("bench fit: baseline %s", checkout)
         proc = subprocess.run(cmd, cwd=checkout, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                               text=True)
