@@ -6,8 +6,8 @@ Rocket Lake, Sapphire Rapids, ...) LLVM's CPU models carry the tuning flag ``pre
 numba, which compiles for the host's CPU model, splits each such loop into two 256-bit halves.  With
 the flag removed (``-prefer-256-bit`` in ``NUMBA_CPU_FEATURES``) the same loops use the 512-bit
 registers: on an Intel Xeon with AVX-512 (LLVM CPU name ``rocketlake``, 2026-11-26) one 504x378
-render's forward + backward went from 70 to 47 ms and a training iteration at 504x378 from 123 to
-95 ms (docs/performance.md, "Vector width").  AMD's Zen 4 model has no such flag, and CPUs without
+render's forward + backward went from 72 to 47 ms and a training iteration at 504x378 from 118.7 to
+82.6 ms (``trace3d bench fit``, docs/performance.md, "Vector width").  AMD's Zen 4 model has no such flag, and CPUs without
 AVX-512 have nothing to widen.
 
 The values do not change: the kernels allow no reassociation (``fastmath={"nsz"}``), so LLVM may
@@ -15,7 +15,7 @@ change how many lanes one instruction handles but not the order or rounding of a
 compares renders and gradients compiled both ways bit for bit).
 
 Like ``OMP_WAIT_POLICY``, this is a process setting that the entry points make (:func:`trace3d.cli.main`,
-``rules/common.smk``, ``tests/conftest.py``), never the import of the library: it must be in the
+which every Snakemake rule runs, and ``tests/conftest.py``), never the import of the library: it must be in the
 environment before numba creates its code generator, and it applies to every numba function in the
 process.  An explicit ``NUMBA_CPU_NAME`` or ``NUMBA_CPU_FEATURES`` is respected, and so is
 ``NUMBA_ENABLE_AVX=0``.
@@ -33,15 +33,24 @@ WIDEN = "-prefer-256-bit"
 _set_here: str | None = None
 
 
-def host_features():
-    """LLVM's feature map of this CPU (a dict with ``flatten()``, the form numba uses), or None where
-    LLVM cannot tell."""
+def _llvm():
+    """llvmlite's binding with the native target initialised (None where that fails)."""
     try:
         import llvmlite.binding as ll
 
         ll.initialize_native_target()
-        return ll.get_host_cpu_features()
+        return ll
     except (ImportError, RuntimeError):
+        return None
+
+
+def host_features():
+    """LLVM's feature map of this CPU (a dict with ``flatten()``, the form numba uses), or None where
+    LLVM cannot tell."""
+    ll = _llvm()
+    try:
+        return None if ll is None else ll.get_host_cpu_features()
+    except RuntimeError:
         return None
 
 
@@ -87,19 +96,11 @@ def describe() -> dict:
                     break
     except OSError:
         pass
-    try:
-        import llvmlite.binding as ll
+    import numba
 
-        ll.initialize_native_target()
-        llvm_name = os.environ.get("NUMBA_CPU_NAME") or ll.get_host_cpu_name()
-    except (ImportError, RuntimeError):
-        llvm_name = None
-    features = host_features() or {}
-    try:
-        import numba
-
-        explicit = numba.config.CPU_FEATURES or ""  # what numba's code generator reads
-    except ImportError:
-        explicit = os.environ.get("NUMBA_CPU_FEATURES", "")
-    return {"model": model, "llvm_cpu": llvm_name, "avx512": bool(features.get("avx512f")),
-            "prefer_512_bit": bool(features.get("avx512f")) and WIDEN in explicit.split(",")}
+    ll = _llvm()
+    llvm_name = os.environ.get("NUMBA_CPU_NAME") or (None if ll is None else ll.get_host_cpu_name())
+    avx512 = bool((host_features() or {}).get("avx512f"))
+    in_use = numba.config.CPU_FEATURES or ""  # what numba's code generator reads
+    return {"model": model, "llvm_cpu": llvm_name, "avx512": avx512,
+            "prefer_512_bit": avx512 and WIDEN in in_use.split(",")}
