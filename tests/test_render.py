@@ -588,6 +588,78 @@ class TestEdgeCases:
         assert g[0] > 0 and abs(float(g[1])) < 1e-2 * float(g[0])
 
 
+class TestValuesOnlyBackward:
+    """With the geometry frozen (nothing upstream of the projection needs a gradient: lifting's features,
+    GIT through autograd) the backward runs ``backward_values_kernel``: the value gradients alone."""
+
+    @staticmethod
+    def _feature_grad(splats, camera, features, upstream, background, kernels, monkeypatch, frozen: bool):
+        """d sum(upstream * F) / d features, with the geometry frozen or not; asserts which backward ran."""
+        ran = []
+        for name in ("backward_kernel", "backward_values_kernel"):
+            fn = getattr(kernels, name)
+            monkeypatch.setattr(kernels, name, lambda *a, _fn=fn, _name=name: ran.append(_name) or _fn(*a))
+        sp = splats if frozen else Splats(splats.means.clone().requires_grad_(), *splats[1:])
+        feats = features.clone().requires_grad_()
+        out = render(sp, camera, feats, background)
+        (g,) = torch.autograd.grad((out.features * upstream).sum(), feats)
+        monkeypatch.undo()
+        assert ran == ["backward_values_kernel" if frozen else "backward_kernel"]
+        return g
+
+    @pytest.mark.parametrize("channels", [3, 5, 16, 37])  # with the normals: 6, 8 (every fixed plane), 19, 40
+    def test_same_bits_as_the_full_backward(self, channels, monkeypatch):
+        from trace3d.render import kernels
+
+        splats, camera, features = make_scene(channels, channels=channels)
+        gen = torch.Generator().manual_seed(channels)
+        upstream = torch.randn(camera.height, camera.width, channels, generator=gen)
+        background = torch.rand(channels, generator=gen) if channels == 3 else torch.zeros(channels)
+        frozen = self._feature_grad(splats, camera, features, upstream, background, kernels, monkeypatch, True)
+        full = self._feature_grad(splats, camera, features, upstream, background, kernels, monkeypatch, False)
+        assert float(full.abs().max()) > 0.1
+        # the same blended lanes in the same order: the same value gradients to the bit
+        assert torch.equal(frozen, full)
+
+    @pytest.mark.parametrize("seed", [0, 1])
+    def test_against_reference(self, seed):
+        splats, camera, features = make_scene(seed + 20, camera=make_camera(rotate=seed == 1), channels=16)
+        gen = torch.Generator().manual_seed(seed)
+        upstream = torch.randn(camera.height, camera.width, 16, generator=gen)
+        grads = {}
+        for backend in ("numba", "reference"):
+            feats = features.clone().requires_grad_()
+            out = render(splats, camera, feats, backend=backend)
+            (grads[backend],) = torch.autograd.grad((out.features * upstream).sum(), feats)
+        assert rel_err(grads["numba"], grads["reference"]) <= 1e-4
+
+    def test_every_column_and_unblended_pixels(self):
+        # the kernel's tail columns (the normals' values, after the features) through the autograd function
+        # directly, against the full backward; a non-finite upstream gradient at pixels no splat blended
+        # changes nothing (the full backward ignores it there as well)
+        from trace3d.render.kernels import Binning, _Rasterize, pack_geometry
+
+        splats, camera, features = make_scene(9, n=60, channels=5)
+        proj = project(splats, camera, 0.01)
+        binning = Binning(proj, camera.width, camera.height)
+        vals = torch.cat([features, proj.normals], 1)
+        gen = torch.Generator().manual_seed(9)
+        up_head = torch.randn(camera.height, camera.width, 5, generator=gen)
+        up_tail = torch.randn(camera.height, camera.width, 3, generator=gen)
+        grads = {}
+        for frozen in (True, False):
+            geom = pack_geometry(proj).detach()
+            geom = geom if frozen else geom.requires_grad_()
+            v = vals.detach().clone().requires_grad_()
+            head, tail, _, _, final_t, _, _ = _Rasterize.apply(geom, v, binning, 0.01, 5, None, None)
+            empty = (final_t == 1.0).detach()
+            assert bool(empty.any()) and not bool(empty.all())
+            h = torch.where(empty[..., None], torch.full_like(up_head, float("nan")), up_head)
+            (grads[frozen],) = torch.autograd.grad((head * h).sum() + (tail * up_tail).sum(), v)
+        assert bool(torch.isfinite(grads[True]).all()) and float(grads[True][:, 5:].abs().max()) > 0.01
+        assert torch.equal(grads[True], grads[False])
+
+
 @pytest.mark.parametrize("n_chunks", [1, 2, 3])
 def test_backward_chunk_sum_matches_numpy(n_chunks):
     """The backward's per-worker buffers, summed and split in one numba pass, against numpy's sum."""

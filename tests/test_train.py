@@ -668,7 +668,8 @@ def test_bench_fit_phases_add_up_and_instrumentation_is_removed(tmp_path):
     for name in ("projection", "forward_kernel", "backward_kernel", "loss", "optimizer"):
         assert phases[name] > 0, name
     assert 0 < out["kernel_share"] < 1 and out["gaussians_start"] == 400
-    assert out["channels"]["fwd_bwd_ms_16"] > 0 and out["channels"]["ratio_16_over_3"] > 0
+    for suffix in ("", "_geometry"):  # features only (lifting's frozen geometry), and with the geometry
+        assert out["channels"][f"fwd_bwd_ms_16{suffix}"] > 0 and out["channels"][f"ratio_16_over_3{suffix}"] > 0
     # cores busy: CPU time over wall time in the same spans, at most the machine's cores (+ timer slack)
     assert set(out["cores_busy"]) == set(bench.PHASES)
     cores = os.cpu_count() or 1

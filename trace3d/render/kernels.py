@@ -1,6 +1,6 @@
 """CPU tile kernels (numba) for 2DGS blending, their hand-written backward, and GIT tracing.
 
-This file is longer than the others (~900 lines) on purpose: the forward, backward and trace kernels
+This file is longer than the others (~1,500 lines) on purpose: the forward, backward and trace kernels
 must make bit-identical decisions for every pixel-splat pair, so they sit beside the inline helpers
 and the field constants they share (:func:`splat_geometry`, :func:`eval_lane`, the ``F_*`` offsets),
 with the thin torch glue that packs their inputs at the end.
@@ -26,7 +26,8 @@ decisions.  The backward walks each tile's list
 back to front, recovering the transmittance by division and keeping, per pixel, the running
 "what comes after" dot product.  Tiles run in parallel (``prange``); gradients go to one buffer per
 worker chunk (tiles are dealt round-robin to chunks), summed afterwards: race-free and
-deterministic.
+deterministic.  When nothing upstream of the geometry needs a gradient (lifting's frozen scene, GIT
+through autograd), :func:`backward_values_kernel` does the same walk for the value gradients alone.
 """
 
 from __future__ import annotations
@@ -813,6 +814,142 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
     return grads
 
 
+
+# the values-only backward's flat tile buffer: transmittance before the splats still to come, last
+# blended list position (tile-relative, + 1), the current rows' blend weights, then one plane per
+# value column of the upstream gradient
+V_TRANS = np.uint64(0 * TILE_PIXELS)
+V_LAST = np.uint64(1 * TILE_PIXELS)
+V_W = np.uint64(2 * TILE_PIXELS)
+V_ACC = np.uint64(3 * TILE_PIXELS)  # the current splat's value sums, then the upstream gradient pixel-major
+
+
+@njit(parallel=True, cache=True, fastmath=FASTMATH)
+def backward_values_kernel(egeom, ebox, lists, n, offsets, width, height, tiles_x, near, n_chunks, final_t, last,
+                           v_head, v_tail, n_cols):
+    """Back-to-front gradients of the blended values only (the geometry needs none: lifting's frozen
+    scene, GIT through autograd): d vals[g, c] = sum over pixels of w_gp v[p, c], with w_gp the blend
+    weight of splat g at pixel p.
+
+    The tile walk is :func:`backward_kernel`'s without its gradient terms: per (splat, tile) one vector
+    loop over the lanes of the rows where the splat was blended evaluates alpha (:func:`eval_lane`, the
+    forward's decisions), moves the pixel's transmittance past the splat by the same division and stores
+    the blend weight (0 where the pair was not blended).  The value sums then run over whole 16-lane
+    rows, one vector accumulator per column (lanes of weight 0 add nothing, so a non-finite upstream
+    gradient where the splat did not blend is ignored), each reduced at the end by a fixed tree
+    (lanes i and i + 8, then + 4, + 2, + 1): deterministic, but not :func:`backward_kernel`'s
+    lane-by-lane order, so the values agree with its value gradients to rounding, not to the bit.
+
+    Args:
+        as :func:`backward_kernel`; ``n`` the number of splats; only the first ``n_cols`` value columns
+        get gradients (the head's then the tail's).
+    Returns:
+        grads [n_chunks, N, n_cols] float32 (sum over axis 0).
+    """
+    n_tiles = offsets.shape[0] - 1
+    grads = np.zeros((n_chunks, n, n_cols), np.float32)
+    near32 = np.float32(near)
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    tp = TILE_PIXELS
+    n_head = min(v_head.shape[2], n_cols)
+    for chunk in prange(n_chunks):
+        gbuf = grads[chunk]
+        gt = V_ACC + np.uint64(n_cols)  # upstream gradient, pixel p's columns at gt + p n_cols
+        buf = np.zeros(gt + np.uint64(n_cols * tp), np.float32)
+        rows_live = np.zeros(TILE, np.bool_)
+        for t in range(chunk, n_tiles, n_chunks):
+            start = offsets[t]
+            end = offsets[t + 1]
+            if start == end:
+                continue
+            px0 = (t % tiles_x) * TILE
+            py0 = (t // tiles_x) * TILE
+            px1 = min(px0 + TILE, width)
+            py1 = min(py0 + TILE, height)
+            buf[:] = 0.0  # pixels outside the image stay zero: never blended
+            max_last = 0
+            for py in range(py0, py1):
+                for px in range(px0, px1):
+                    p = np.uint64((py - py0) * TILE + (px - px0))
+                    lp = last[py, px]
+                    if lp > max_last:
+                        max_last = lp
+                    buf[V_TRANS + p] = final_t[py, px]
+                    buf[V_LAST + p] = np.float32(max(lp - start, 0))
+                    at = gt + p * np.uint64(n_cols)
+                    for ch in range(n_head):
+                        buf[at + np.uint64(ch)] = v_head[py, px, ch]
+                    for ch in range(n_head, n_cols):
+                        buf[at + np.uint64(ch)] = v_tail[py, px, ch - n_head]
+            for j in range(max_last - 1, start - 1, -1):
+                g = lists[j]
+                lx0 = max(ebox[j, 0], px0) - px0
+                lx1 = min(ebox[j, 2], px1) - px0
+                y0 = max(ebox[j, 1], py0)
+                y1 = min(ebox[j, 3], py1)
+                jrel = np.float32(j - start)
+                a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2, mx, my, opac = splat_geometry(egeom, j)
+                r_first = -1
+                r_last = -1
+                for r in range(y0 - py0, y1 - py0):
+                    row = np.uint64(r * TILE)
+                    live_row = False
+                    for i in range(lx0, lx1):
+                        if jrel < buf[V_LAST + row + np.uint64(i)]:
+                            live_row = True
+                            break
+                    rows_live[r] = live_row
+                    if live_row:
+                        r_last = r
+                        if r_first < 0:
+                            r_first = r
+                if r_first < 0:
+                    continue
+                q0 = r_first * TILE
+                q1 = (r_last + 1) * TILE
+                for q in range(q0, q1):
+                    p, i, x, y, dy = _lane_position(q, px0, py0, my)
+                    al, _, _, _, _, _, _ = eval_lane(x, a0 + d0 * y, a1 + d1 * y, a2 + d2 * y, b0, b1, b2, mx, dy * dy,
+                                                     opac, tw0, tw1, tw2, near32)
+                    live = (i >= lx0) & (i < lx1) & (al != zero) & (jrel < buf[V_LAST + p])
+                    t_before = buf[V_TRANS + p] * (one / (one - al))
+                    buf[V_W + p] = al * t_before if live else zero
+                    buf[V_TRANS + p] = t_before if live else buf[V_TRANS + p]
+                # the value sums: per blended lane, rows and lanes in ascending order (as backward_kernel
+                # adds them), all columns of the lane in one vector loop
+                buf[V_ACC:V_ACC + np.uint64(n_cols)] = 0.0
+                for r in range(r_first, r_last + 1):
+                    if not rows_live[r]:
+                        continue
+                    row = np.uint64(r * TILE)
+                    for i in range(lx0, lx1):
+                        p = row + np.uint64(i)
+                        w = buf[V_W + p]
+                        if w != zero:
+                            at = gt + p * np.uint64(n_cols)
+                            for ch in range(n_cols):
+                                buf[V_ACC + np.uint64(ch)] += w * buf[at + np.uint64(ch)]
+                for ch in range(n_cols):
+                    gbuf[g, ch] += buf[V_ACC + np.uint64(ch)]
+    return grads
+
+
+@njit(parallel=True, cache=True)
+def sum_value_chunks(grads, k):
+    """The values-only backward's per-chunk buffers [n_chunks, N, n_cols] summed in chunk order into
+    [N, k] (columns past n_cols zero: nobody asked for them)."""
+    n_chunks, n, cols = grads.shape
+    out = np.zeros((n, k), np.float32)
+    for g in prange(n):
+        for c in range(cols):
+            s = grads[0, g, c]
+            for m in range(1, n_chunks):
+                s += grads[m, g, c]
+            out[g, c] = s
+    return out
+
+
 # ----------------------------------------------------------------------------------------------
 # tracing (GIT)
 # ----------------------------------------------------------------------------------------------
@@ -1226,7 +1363,7 @@ def fold_background_grad(v_head, v_final_t, background):
 class _Rasterize(torch.autograd.Function):
     @staticmethod
     def forward(ctx, geom15: Tensor, vals: Tensor, binning: Binning, near: float, split: int,
-                background: Tensor | None):
+                background: Tensor | None, value_grad_cols: int | None = None):
         geom = _geom_array(geom15)
         vals_np = _f32(vals)
         egeom = binning.entry_geometry(geom)
@@ -1237,6 +1374,7 @@ class _Rasterize(torch.autograd.Function):
         ctx.background = (np.zeros(split, np.float32) if background is None
                           else np.ascontiguousarray(background.detach().numpy()))
         ctx.fold = background is not None
+        ctx.value_grad_cols = value_grad_cols  # with frozen geometry: gradients for vals[:, :value_grad_cols]
         head, tail, acc_z, acc_z2, final_t, median_z, depth_ref, last, median_at, pairs = forward_kernel(
             egeom, binning.entry_boxes, binning.lists, vals_np, binning.offsets, binning.width,
             binning.height, binning.tiles_x, float(near), split, ctx.background, ctx.fold)
@@ -1262,21 +1400,30 @@ class _Rasterize(torch.autograd.Function):
                 return np.zeros(shape, np.float32)
             return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
 
-        v_t = np.array(arr(v_final_t, (h, w)))  # a copy: the background's share is added in place
         g_head = arr(v_head, (h, w, ctx.split))
+        n_chunks = max(1, numba.get_num_threads())
+        gdt, vdt, dev = ctx.in_dtype
+        if not ctx.needs_input_grad[0]:
+            # frozen geometry: the value gradients alone, for the columns that need them (the depth,
+            # transmittance and median outputs do not depend on the values)
+            n_cols = k if ctx.value_grad_cols is None else ctx.value_grad_cols
+            v_tail_np = arr(v_tail, (h, w, k - ctx.split)) if n_cols > ctx.split else np.zeros((h, w, 0), np.float32)
+            grads = backward_values_kernel(egeom, b.entry_boxes, b.lists, vals_np.shape[0], b.offsets, b.width,
+                                           b.height, b.tiles_x, float(ctx.near), n_chunks, final_t, last, g_head,
+                                           v_tail_np, n_cols)
+            g_vals = torch.from_numpy(sum_value_chunks(grads, k)).to(device=dev, dtype=vdt)
+            return None, g_vals, None, None, None, None, None
+        v_t = np.array(arr(v_final_t, (h, w)))  # a copy: the background's share is added in place
         if ctx.fold:
             fold_background_grad(g_head, v_t, ctx.background)
-
-        n_chunks = max(1, numba.get_num_threads())
         grads = backward_kernel(egeom, b.entry_boxes, b.lists, vals_np, b.offsets, b.width, b.height, b.tiles_x,
                                 float(ctx.near), n_chunks, final_t, depth_ref, last, median_at,
                                 g_head, arr(v_tail, (h, w, k - ctx.split)), arr(v_z, (h, w)), arr(v_z2, (h, w)),
                                 v_t, arr(v_median, (h, w)))
         g_geom_np, g_vals_np = sum_chunks(grads)
-        gdt, vdt, dev = ctx.in_dtype
         g_geom = torch.from_numpy(g_geom_np).to(device=dev, dtype=gdt)
         g_vals = torch.from_numpy(g_vals_np).to(device=dev, dtype=vdt)
-        return g_geom, g_vals, None, None, None, None
+        return g_geom, g_vals, None, None, None, None, None
 
 
 def rasterize(proj: Projected, features: Tensor, width: int, height: int, background: Tensor,
@@ -1299,7 +1446,8 @@ def rasterize(proj: Projected, features: Tensor, width: int, height: int, backgr
     fold = (vals.dtype == torch.float32 and background.dtype == torch.float32 and background.device.type == "cpu"
             and not background.requires_grad and (c == 3 or not bool(background.any())))
     feats, normal, acc_z, acc_z2, final_t, median_z, depth_ref = _Rasterize.apply(
-        pack_geometry(proj), vals, binning, near, c, background.contiguous() if fold else None)
+        pack_geometry(proj), vals, binning, near, c, background.contiguous() if fold else None,
+        None if proj.normals.requires_grad else c)
     return {
         "features": feats if fold else feats + final_t[..., None] * background,
         "alpha": 1.0 - final_t,

@@ -185,24 +185,30 @@ def _phases(per: dict, it_ms: float) -> dict:
 def _channel_cost(model, camera, repeats: int = 7) -> dict:
     """Forward + backward time (ms, median) of one view's render with 3 and with 16 feature
     channels (plus the 3 normal channels the renderer always blends), and their ratio: what
-    rendering lifting's 16-d features costs against colour."""
+    rendering lifting's 16-d features costs against colour.  ``fwd_bwd_ms_*`` and
+    ``ratio_16_over_3`` differentiate the features only, with the geometry frozen as lifting has it
+    (the values-only backward); the ``*_geometry`` figures differentiate the geometry as well (the
+    backward of a fit)."""
     import numpy as np
 
-    from ..render import render
+    from ..render import Splats, render
 
     gen = torch.Generator().manual_seed(0)
-    splats = model.splats()
+    frozen = model.splats()
+    frozen = Splats(*(t.detach() for t in frozen))
+    moving = Splats(*(t.detach().clone().requires_grad_() for t in frozen))
     out = {}
-    for c in (3, 16):
-        feats = torch.rand(len(model), c, generator=gen).requires_grad_()
-        times = []
-        for _ in range(repeats + 1):
-            start = time.perf_counter()
-            image = render(splats, camera, feats).features
-            torch.autograd.grad(image.sum(), feats)
-            times.append(time.perf_counter() - start)
-        out[f"fwd_bwd_ms_{c}"] = 1000.0 * float(np.median(times[1:]))
-    out["ratio_16_over_3"] = out["fwd_bwd_ms_16"] / out["fwd_bwd_ms_3"]
+    for suffix, splats in (("", frozen), ("_geometry", moving)):
+        for c in (3, 16):
+            feats = torch.rand(len(model), c, generator=gen).requires_grad_()
+            times = []
+            for _ in range(repeats + 1):
+                start = time.perf_counter()
+                image = render(splats, camera, feats).features
+                torch.autograd.grad(image.sum(), feats)
+                times.append(time.perf_counter() - start)
+            out[f"fwd_bwd_ms_{c}{suffix}"] = 1000.0 * float(np.median(times[1:]))
+        out[f"ratio_16_over_3{suffix}"] = out[f"fwd_bwd_ms_16{suffix}"] / out[f"fwd_bwd_ms_3{suffix}"]
     return out
 
 
