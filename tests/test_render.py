@@ -673,6 +673,17 @@ def test_backward_chunk_sum_matches_numpy(n_chunks):
     assert g_geom.flags.c_contiguous and g_vals.shape == (57, 4)
 
 
+@pytest.mark.parametrize("n_chunks", [1, 2, 3])
+def test_value_chunk_sum_matches_numpy(n_chunks):
+    """The values-only backward's per-worker buffers summed in chunk order, the columns nobody asked for zero."""
+    from trace3d.render.kernels import sum_value_chunks
+
+    grads = np.random.default_rng(n_chunks).normal(size=(n_chunks, 57, 5)).astype(np.float32)
+    out = sum_value_chunks(grads, 8)
+    assert out.shape == (57, 8) and not out[:, 5:].any()
+    np.testing.assert_allclose(out[:, :5], grads.sum(axis=0), rtol=1e-6, atol=1e-6)
+
+
 def test_radix_argsort_is_numpys_stable_order():
     """The binning's depth order (radix sort of float32 bits) is numpy's stable argsort exactly: random
     depths, many ties, negative values, denormals, +-0.0 (equal for numpy), NaNs (last) and infinities."""
