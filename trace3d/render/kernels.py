@@ -814,14 +814,13 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
     return grads
 
 
-
 # the values-only backward's flat tile buffer: transmittance before the splats still to come, last
-# blended list position (tile-relative, + 1), the current rows' blend weights, then one plane per
-# value column of the upstream gradient
+# blended list position (tile-relative, + 1), the current rows' blend weights, then the current
+# splat's value sums (n_cols) and after them the upstream gradient pixel-major (n_cols per pixel)
 V_TRANS = np.uint64(0 * TILE_PIXELS)
 V_LAST = np.uint64(1 * TILE_PIXELS)
 V_W = np.uint64(2 * TILE_PIXELS)
-V_ACC = np.uint64(3 * TILE_PIXELS)  # the current splat's value sums, then the upstream gradient pixel-major
+V_ACC = np.uint64(3 * TILE_PIXELS)
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
@@ -833,12 +832,12 @@ def backward_values_kernel(egeom, ebox, lists, n, offsets, width, height, tiles_
 
     The tile walk is :func:`backward_kernel`'s without its gradient terms: per (splat, tile) one vector
     loop over the lanes of the rows where the splat was blended evaluates alpha (:func:`eval_lane`, the
-    forward's decisions), moves the pixel's transmittance past the splat by the same division and stores
-    the blend weight (0 where the pair was not blended).  The value sums then run over whole 16-lane
-    rows, one vector accumulator per column (lanes of weight 0 add nothing, so a non-finite upstream
-    gradient where the splat did not blend is ignored), each reduced at the end by a fixed tree
-    (lanes i and i + 8, then + 4, + 2, + 1): deterministic, but not :func:`backward_kernel`'s
-    lane-by-lane order, so the values agree with its value gradients to rounding, not to the bit.
+    forward's decisions), moves the pixel's transmittance past the splat by the same operations and
+    stores the blend weight (0 where the pair was not blended).  The value sums then go per blended
+    lane, rows and lanes in ascending order as :func:`backward_kernel` adds them, all columns of a lane
+    in one vector loop over the pixel-major upstream gradient: the same value gradients to the bit
+    (tested).  Lanes of weight 0 are skipped, so a non-finite upstream gradient where the splat did not
+    blend is ignored, as there.  Deterministic: per-chunk buffers as in :func:`backward_kernel`.
 
     Args:
         as :func:`backward_kernel`; ``n`` the number of splats; only the first ``n_cols`` value columns
