@@ -577,6 +577,28 @@ def _lane_terms(buf, p, x, live, alpha, z, u, v, inv_c2, disk, gauss, t_before, 
     buf[B_TMY + p] = two * dy * g_sigma if on_filter else zero
 
 
+@njit(inline="always")
+def _live_rows(buf, last_plane, rows_live, r0, r1, lx0, lx1, jrel):
+    """The backward's rows of a splat's footprint in a tile where it was blended into some pixel (tile
+    list position ``jrel`` before the pixel's last blended one, read from the plane at ``last_plane``):
+    marks each row of [r0, r1) in ``rows_live`` and returns the first and last such row (-1, -1: none)."""
+    r_first = -1
+    r_last = -1
+    for r in range(r0, r1):
+        row = np.uint64(r * TILE)
+        live_row = False
+        for i in range(lx0, lx1):
+            if jrel < buf[last_plane + row + np.uint64(i)]:
+                live_row = True
+                break
+        rows_live[r] = live_row
+        if live_row:
+            r_last = r
+            if r_first < 0:
+                r_first = r
+    return r_first, r_last
+
+
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
 def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, near, n_chunks,
                     final_t, depth_ref, last, median_at, v_head, v_tail, v_z, v_z2, v_final_t, v_median):
@@ -686,20 +708,7 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
                 for ch in range(8, k_ch):
                     g_vals[ch] = 0
                 # the rows of the tile where this splat was blended into some pixel
-                r_first = -1
-                r_last = -1
-                for r in range(y0 - py0, y1 - py0):
-                    row = np.uint64(r * TILE)
-                    live_row = False
-                    for i in range(lx0, lx1):
-                        if jrel < buf[B_LAST + row + np.uint64(i)]:
-                            live_row = True
-                            break
-                    rows_live[r] = live_row
-                    if live_row:
-                        r_last = r
-                        if r_first < 0:
-                            r_first = r
+                r_first, r_last = _live_rows(buf, B_LAST, rows_live, y0 - py0, y1 - py0, lx0, lx1, jrel)
                 if r_first < 0:
                     continue
                 # every lane of those rows at once (independent lanes: the vector loop overlaps rows)
@@ -889,20 +898,7 @@ def backward_values_kernel(egeom, ebox, lists, n, offsets, width, height, tiles_
                 y1 = min(ebox[j, 3], py1)
                 jrel = np.float32(j - start)
                 a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2, mx, my, opac = splat_geometry(egeom, j)
-                r_first = -1
-                r_last = -1
-                for r in range(y0 - py0, y1 - py0):
-                    row = np.uint64(r * TILE)
-                    live_row = False
-                    for i in range(lx0, lx1):
-                        if jrel < buf[V_LAST + row + np.uint64(i)]:
-                            live_row = True
-                            break
-                    rows_live[r] = live_row
-                    if live_row:
-                        r_last = r
-                        if r_first < 0:
-                            r_first = r
+                r_first, r_last = _live_rows(buf, V_LAST, rows_live, y0 - py0, y1 - py0, lx0, lx1, jrel)
                 if r_first < 0:
                     continue
                 q0 = r_first * TILE
