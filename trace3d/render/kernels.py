@@ -219,6 +219,14 @@ def exp_neg(s):
 
 
 @njit(inline="always")
+def _tile_bounds(t, tiles_x, width, height):
+    """Tile ``t``'s pixel bounds: its first column and row, and its end column and row clipped to the image."""
+    px0 = (t % tiles_x) * TILE
+    py0 = (t // tiles_x) * TILE
+    return px0, py0, min(px0 + TILE, width), min(py0 + TILE, height)
+
+
+@njit(inline="always")
 def splat_geometry(egeom, j):
     """The 15 geometry fields of tile-list entry ``j``: A (3), B (3), D (3), T_w (3), means2d (2), opacity."""
     return (egeom[j, 0], egeom[j, 1], egeom[j, 2], egeom[j, 3], egeom[j, 4], egeom[j, 5], egeom[j, 6], egeom[j, 7],
@@ -332,10 +340,7 @@ def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, ne
     for t in prange(n_tiles):
         start = offsets[t]
         end = offsets[t + 1]
-        px0 = (t % tiles_x) * TILE
-        py0 = (t // tiles_x) * TILE
-        px1 = min(px0 + TILE, width)
-        py1 = min(py0 + TILE, height)
+        px0, py0, px1, py1 = _tile_bounds(t, tiles_x, width, height)
         if start == end:
             if fold:  # nothing blended: the transmittance stays 1
                 for py in range(py0, py1):
@@ -645,10 +650,7 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
             end = offsets[t + 1]
             if start == end:
                 continue
-            px0 = (t % tiles_x) * TILE
-            py0 = (t // tiles_x) * TILE
-            px1 = min(px0 + TILE, width)
-            py1 = min(py0 + TILE, height)
+            px0, py0, px1, py1 = _tile_bounds(t, tiles_x, width, height)
             # the tile's pixels (those outside the image stay zero: never blended)
             buf[:B_VMED + np.uint64(tp)] = 0.0
             buf[B_G0:B_G0 + np.uint64(k_ch * tp)] = 0.0
@@ -871,10 +873,7 @@ def backward_values_kernel(egeom, ebox, lists, n, offsets, width, height, tiles_
             end = offsets[t + 1]
             if start == end:
                 continue
-            px0 = (t % tiles_x) * TILE
-            py0 = (t // tiles_x) * TILE
-            px1 = min(px0 + TILE, width)
-            py1 = min(py0 + TILE, height)
+            px0, py0, px1, py1 = _tile_bounds(t, tiles_x, width, height)
             buf[:] = 0.0  # pixels outside the image stay zero: never blended
             max_last = 0
             for py in range(py0, py1):
@@ -958,10 +957,7 @@ def trace_label_counts(offsets, width, height, tiles_x, labels):
     for t in prange(n_tiles):
         if offsets[t + 1] == offsets[t]:
             continue
-        px0 = (t % tiles_x) * TILE
-        py0 = (t // tiles_x) * TILE
-        px1 = min(px0 + TILE, width)
-        py1 = min(py0 + TILE, height)
+        px0, py0, px1, py1 = _tile_bounds(t, tiles_x, width, height)
         seen = np.zeros(TILE_PIXELS, np.int64)
         count = 0
         for py in range(py0, py1):
@@ -1015,10 +1011,7 @@ def trace_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, labe
         n_lab = n_local[t]
         if start == end or n_lab == 0:
             continue
-        px0 = (t % tiles_x) * TILE
-        py0 = (t // tiles_x) * TILE
-        px1 = min(px0 + TILE, width)
-        py1 = min(py0 + TILE, height)
+        px0, py0, px1, py1 = _tile_bounds(t, tiles_x, width, height)
         n_pix = (px1 - px0) * (py1 - py0)
         local_of = np.full(TILE_PIXELS, -1, np.int64)
         label_of = np.zeros(n_lab, np.int64)
