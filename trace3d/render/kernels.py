@@ -227,6 +227,13 @@ def _tile_bounds(t, tiles_x, width, height):
 
 
 @njit(inline="always")
+def _box_in_tile(ebox, j, px0, py0, px1, py1):
+    """Tile-list entry ``j``'s footprint box inside the tile [px0, px1) x [py0, py1): its columns
+    relative to the tile [lx0, lx1) and its image rows [y0, y1) (empty ranges where it misses)."""
+    return max(ebox[j, 0], px0) - px0, min(ebox[j, 2], px1) - px0, max(ebox[j, 1], py0), min(ebox[j, 3], py1)
+
+
+@njit(inline="always")
 def splat_geometry(egeom, j):
     """The 15 geometry fields of tile-list entry ``j``: A (3), B (3), D (3), T_w (3), means2d (2), opacity."""
     return (egeom[j, 0], egeom[j, 1], egeom[j, 2], egeom[j, 3], egeom[j, 4], egeom[j, 5], egeom[j, 6], egeom[j, 7],
@@ -356,10 +363,7 @@ def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, ne
         visited = 0
         for j in range(start, end):
             g = lists[j]
-            lx0 = max(ebox[j, 0], px0) - px0
-            lx1 = min(ebox[j, 2], px1) - px0
-            y0 = max(ebox[j, 1], py0)
-            y1 = min(ebox[j, 3], py1)
+            lx0, lx1, y0, y1 = _box_in_tile(ebox, j, px0, py0, px1, py1)
             a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2, mx, my, opac = splat_geometry(egeom, j)
             visited += (y1 - y0) * TILE
             v0, v1, v2, v3, v4, v5, v6, v7 = first_values(vals, g)
@@ -520,14 +524,23 @@ def _lane_alpha(q, px0, py0, lx0, lx1, a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, 
 
 
 @njit(inline="always", fastmath=FASTMATH)
+def _lane_unblend(buf, trans_plane, last_plane, p, i, lx0, lx1, jrel, alpha):
+    """The backward's step back past a splat at one lane: whether the pair was blended (inside the box's
+    columns [lx0, lx1), alpha not 0, list position ``jrel`` before the pixel's last blended one) and the
+    pixel's transmittance before the splat, recovered from the one after it by the same division in
+    every backward: (blended, t_before, 1 / (1 - alpha))."""
+    live = (i >= lx0) & (i < lx1) & (alpha != np.float32(0.0)) & (jrel < buf[last_plane + p])
+    inv_one_minus = np.float32(1.0) / (np.float32(1.0) - alpha)
+    return live, buf[trans_plane + p] * inv_one_minus, inv_one_minus
+
+
+@njit(inline="always", fastmath=FASTMATH)
 def _lane_front(buf, p, i, x, lx0, lx1, jrel, e0, e1, e2, b0, b1, b2, mx, dy2, opac, tw0, tw1, tw2, near32,
                 v0, v1, v2, v3, v4, v5, v6, v7):
     """One lane of a splat row in the backward, up to the dot product of the upstream gradient with the
     splat's values over the first 8 channels (zero values and planes past K add nothing)."""
     al, zz, uu, vv, iv, dk, gs = eval_lane(x, e0, e1, e2, b0, b1, b2, mx, dy2, opac, tw0, tw1, tw2, near32)
-    live = (i >= lx0) & (i < lx1) & (al != np.float32(0.0)) & (jrel < buf[B_LAST + p])
-    inv_one_minus = np.float32(1.0) / (np.float32(1.0) - al)
-    t_before = buf[B_TRANS + p] * inv_one_minus
+    live, t_before, inv_one_minus = _lane_unblend(buf, B_TRANS, B_LAST, p, i, lx0, lx1, jrel, al)
     dz = zz - buf[B_REF + p]
     dot = buf[B_VZ + p] * zz + buf[B_VZ2 + p] * dz * dz
     dot += buf[B_G0 + p] * v0
@@ -676,10 +689,7 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
                         buf[B_G0 + np.uint64(ch * tp) + p] = v_tail[py, px, ch - n_head]
             for j in range(max_last - 1, start - 1, -1):
                 g = lists[j]
-                lx0 = max(ebox[j, 0], px0) - px0
-                lx1 = min(ebox[j, 2], px1) - px0
-                y0 = max(ebox[j, 1], py0)
-                y1 = min(ebox[j, 3], py1)
+                lx0, lx1, y0, y1 = _box_in_tile(ebox, j, px0, py0, px1, py1)
                 jrel = np.float32(j - start)
                 a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2, mx, my, opac = splat_geometry(egeom, j)
                 v0, v1, v2, v3, v4, v5, v6, v7 = first_values(vals, g)
@@ -860,7 +870,6 @@ def backward_values_kernel(egeom, ebox, lists, n, offsets, width, height, tiles_
     grads = np.zeros((n_chunks, n, n_cols), np.float32)
     near32 = np.float32(near)
     zero = np.float32(0.0)
-    one = np.float32(1.0)
     tp = TILE_PIXELS
     n_head = min(v_head.shape[2], n_cols)
     for chunk in prange(n_chunks):
@@ -891,10 +900,7 @@ def backward_values_kernel(egeom, ebox, lists, n, offsets, width, height, tiles_
                         buf[at + np.uint64(ch)] = v_tail[py, px, ch - n_head]
             for j in range(max_last - 1, start - 1, -1):
                 g = lists[j]
-                lx0 = max(ebox[j, 0], px0) - px0
-                lx1 = min(ebox[j, 2], px1) - px0
-                y0 = max(ebox[j, 1], py0)
-                y1 = min(ebox[j, 3], py1)
+                lx0, lx1, y0, y1 = _box_in_tile(ebox, j, px0, py0, px1, py1)
                 jrel = np.float32(j - start)
                 a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2, mx, my, opac = splat_geometry(egeom, j)
                 r_first, r_last = _live_rows(buf, V_LAST, rows_live, y0 - py0, y1 - py0, lx0, lx1, jrel)
@@ -906,8 +912,7 @@ def backward_values_kernel(egeom, ebox, lists, n, offsets, width, height, tiles_
                     p, i, x, y, dy = _lane_position(q, px0, py0, my)
                     al, _, _, _, _, _, _ = eval_lane(x, a0 + d0 * y, a1 + d1 * y, a2 + d2 * y, b0, b1, b2, mx, dy * dy,
                                                      opac, tw0, tw1, tw2, near32)
-                    live = (i >= lx0) & (i < lx1) & (al != zero) & (jrel < buf[V_LAST + p])
-                    t_before = buf[V_TRANS + p] * (one / (one - al))
+                    live, t_before, _ = _lane_unblend(buf, V_TRANS, V_LAST, p, i, lx0, lx1, jrel, al)
                     buf[V_W + p] = al * t_before if live else zero
                     buf[V_TRANS + p] = t_before if live else buf[V_TRANS + p]
                 # the value sums: per blended lane, rows and lanes in ascending order (as backward_kernel
@@ -1042,10 +1047,7 @@ def trace_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, labe
         n_used = start
         for j in range(start, end):
             n_used = j + 1
-            lx0 = max(ebox[j, 0], px0) - px0
-            lx1 = min(ebox[j, 2], px1) - px0
-            y0 = max(ebox[j, 1], py0)
-            y1 = min(ebox[j, 3], py1)
+            lx0, lx1, y0, y1 = _box_in_tile(ebox, j, px0, py0, px1, py1)
             a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2, mx, my, opac = splat_geometry(egeom, j)
             q0 = (y0 - py0) * TILE
             q1 = (y1 - py0) * TILE

@@ -194,8 +194,7 @@ def _channel_cost(model, camera, repeats: int = 7) -> dict:
     from ..render import Splats, render
 
     gen = torch.Generator().manual_seed(0)
-    frozen = model.splats()
-    frozen = Splats(*(t.detach() for t in frozen))
+    frozen = Splats(*(t.detach() for t in model.splats()))
     moving = Splats(*(t.detach().clone().requires_grad_() for t in frozen))
     out = {}
     for suffix, splats in (("", frozen), ("_geometry", moving)):
