@@ -128,9 +128,10 @@ def test_fused_loss_kernel_matches_its_twins(kernel):
     assert g_ref.abs().max() > 0
     torch.testing.assert_close(g_fused.double(), g_ref, rtol=1e-3, atol=1e-4 * float(g_ref.abs().max()))
     slow = contrastive_loss_reference(f64[:60], labels[:60], **kw)  # the per-anchor loop on a subset
-    assert float(fused_contrastive_loss(feats[:60], labels[:60], **kw)) == pytest.approx(float(slow), rel=2e-6)
+    assert float(fused_contrastive_loss(feats[:60], labels[:60], **kw).detach()) == pytest.approx(float(slow.detach()),
+                                                                                   rel=2e-6)
     # without a gradient asked for, the same value
-    assert float(fused_contrastive_loss(feats, labels, **kw)) == float(fused.detach())
+    assert float(fused_contrastive_loss(feats, labels, **kw).detach()) == float(fused.detach())
 
 
 def test_fused_loss_kernel_does_not_depend_on_the_thread_count():
@@ -144,7 +145,7 @@ def test_fused_loss_kernel_does_not_depend_on_the_thread_count():
         numba.set_num_threads(threads)
         loss = fused_contrastive_loss(feats, labels, kernel="printed")
         (g,) = torch.autograd.grad(loss, feats)
-        out.append((float(loss), g))
+        out.append((float(loss.detach()), g))
     assert out[0][0] == out[1][0] and torch.equal(out[0][1], out[1][1])
 
 
@@ -272,7 +273,7 @@ def test_fused_loss_pads_odd_sizes(dim):
         f32 = feats.float().requires_grad_(True)
         fused = fused_contrastive_loss(f32, labels, **kw)
         (g_fused,) = torch.autograd.grad(fused, f32)
-        assert float(fused) == pytest.approx(float(ref), rel=1e-5, abs=1e-7)  # float32 sums: ~1e-7 absolute
+        assert float(fused.detach()) == pytest.approx(float(ref.detach()), rel=1e-5, abs=1e-7)  # float32 sums: ~1e-7 absolute
         torch.testing.assert_close(g_fused.double(), g_ref, rtol=1e-3, atol=1e-5 * float(g_ref.abs().max()))
 
 
