@@ -97,7 +97,9 @@ def test_bench_baseline_runs_without_the_current_entry_points_target(monkeypatch
 
 # A short fit on a small generated room with every kernel of the training loop in it (projection, SH
 # colours, binning, forward and backward with the normal term, the loss kernels, Adam, density control),
-# then a 16-channel render and its gradients: hashes of everything.
+# then a 16-channel render and its gradients: hashes of everything, and of every stage on the way (the
+# generated images, the initial Gaussians, the parameters after each iteration) so that a mismatch says
+# where two runs parted.
 FIT_SCRIPT = r"""
 import hashlib, json, sys, tempfile
 from pathlib import Path
@@ -111,30 +113,51 @@ from trace3d.training.loop import fit, scene_extent
 from trace3d.training.params import TrainParams
 from trace3d.training.step import load_images
 
+def digest(tensors):
+    return hashlib.sha256(b"".join(t.detach().contiguous().numpy().tobytes() for t in tensors)).hexdigest()
+
+stages = []
 with tempfile.TemporaryDirectory() as tmp:
     synthetic.generate_scene(Path(tmp) / "room", synthetic.params_from({"width": 64, "height": 48, "num_views": 6,
                                                                           "seed": 3}))
     scene = Scene.read(Path(tmp) / "room")
     train = list(scene.train_cameras)
     images = load_images(scene, train)
+    stages.append(["images", digest(images)])
     base = TrainParams()
     model = init_from_depth(scene, train, stride=1, max_points=4000, sh_degree=base.sh_degree,
                             opacity=base.init_opacity, seed=0)
+    stages.append(["initial Gaussians", digest([getattr(model, n) for n in model.PARAM_NAMES])])
 params = from_mapping(TrainParams, {"iterations": 12, "schedule_scale": 1.0, "densify_from": 0, "densify_until": 13,
                                     "densify_interval": 5, "normal_from": 0, "distortion_from": 0,
-                                    "initial_sh_degree": base.sh_degree, "log_interval": 12,
+                                    "initial_sh_degree": base.sh_degree, "log_interval": 1,
                                     "checkpoint_interval": 12}, "params")
-result = fit(model, train, images, params, extent=scene_extent(train), progress=False)
-h = hashlib.sha256()
-for name in result.model.PARAM_NAMES:
-    h.update(getattr(result.model, name).detach().numpy().tobytes())
+
+def after(iteration, state):
+    m = state.model
+    stages.append([f"iteration {iteration} ({len(m)} Gaussians)",
+                   {n: digest([getattr(m, n)])[:16] for n in m.PARAM_NAMES}])
+
+result = fit(model, train, images, params, extent=scene_extent(train), progress=False, callback=after)
+stages.append(["fit", digest([getattr(result.model, n) for n in result.model.PARAM_NAMES])])
 splats = result.model.splats()
 feats = torch.rand(len(result.model), 16, generator=torch.Generator().manual_seed(0)).requires_grad_()
 out = render(splats, train[0], feats)
 (grad,) = torch.autograd.grad((out.features * torch.linspace(0.1, 1.0, 16)).sum(), [feats])
-h2 = hashlib.sha256(out.features.detach().numpy().tobytes() + grad.numpy().tobytes())
-print(json.dumps([len(result.model), h.hexdigest(), h2.hexdigest()]))
+stages.append(["16-channel render and gradient", digest([out.features, grad])])
+print(json.dumps(stages))
 """
+
+
+def first_difference(a: list, b: list) -> str | None:
+    """The first stage at which two FIT_SCRIPT runs differ, described (None if they agree)."""
+    for (name_a, value_a), (name_b, value_b) in zip(a, b):
+        if name_a != name_b or value_a != value_b:
+            if isinstance(value_a, dict) and isinstance(value_b, dict) and name_a == name_b:
+                fields = sorted(k for k in value_a if value_a[k] != value_b.get(k))
+                return f"{name_a}: {', '.join(fields)} differ"
+            return f"{name_a} ({value_a}) against {name_b} ({value_b})"
+    return None if len(a) == len(b) else f"{len(a)} stages against {len(b)}"
 
 
 @pytest.mark.skipif(cputarget.wide_vector_features() is None, reason="no AVX-512 on this CPU: nothing is widened")
@@ -150,8 +173,17 @@ def test_wide_vectors_change_no_value():
                                 text=True, timeout=900)
         assert result.returncode == 0, result.stderr[-3000:]
         outputs.append(json.loads(result.stdout.strip().splitlines()[-1]))
-    assert outputs[0] == outputs[1]
-    assert outputs[0][0] > 0
+    assert first_difference(*outputs) is None, f"256-bit and 512-bit runs first differ at {first_difference(*outputs)}"
+    assert len(outputs[0]) == 2 + 12 + 2
+
+
+def test_first_difference_names_the_stage():
+    run = [["images", "a"], ["iteration 1 (5 Gaussians)", {"means": "1", "quats": "2"}], ["fit", "f"]]
+    assert first_difference(run, [list(s) for s in run]) is None
+    other = [run[0], ["iteration 1 (5 Gaussians)", {"means": "1", "quats": "3"}], ["fit", "g"]]
+    assert first_difference(run, other) == "iteration 1 (5 Gaussians): quats differ"
+    assert first_difference(run, [["images", "b"]] + run[1:]) == "images (a) against images (b)"
+    assert first_difference(run, run[:2]) == "3 stages against 2"
 
 
 def test_describe_reports_the_target_numba_compiles_for():
