@@ -391,3 +391,28 @@ def test_activations_do_not_depend_on_the_thread_count():
             assert all(torch.equal(a, b) for a, b in zip(one, two)), n
     finally:
         torch.set_num_threads(before)
+
+
+def test_init_scales_log_runs_on_one_torch_thread(monkeypatch):
+    """The initial log-scales come from torch's log on one thread (a two-thread log once gave the
+    second half other values, docs/performance.md, "Run to run"), and the caller's setting stays."""
+    calls = []
+    real_log = torch.log
+
+    def recording_log(t, *args, **kwargs):
+        calls.append((t.numel(), torch.get_num_threads()))
+        return real_log(t, *args, **kwargs)
+
+    before = torch.get_num_threads()
+    gen = torch.Generator().manual_seed(0)
+    pts = torch.rand(40000, 3, generator=gen)  # more than torch's grain size: it would split the log
+    try:
+        torch.set_num_threads(2)
+        monkeypatch.setattr(torch, "log", recording_log)
+        model = init_from_points(pts, np.full((40000, 3), 128, np.uint8), sh_degree=0, seed=0)
+        assert torch.get_num_threads() == 2
+    finally:
+        monkeypatch.undo()
+        torch.set_num_threads(before)
+    assert (40000, 1) in calls and all(threads == 1 for _, threads in calls)
+    torch.testing.assert_close(model.log_scales[:, 0], torch.log(nearest_neighbour_scales(pts)), rtol=0, atol=0)

@@ -601,10 +601,16 @@ def init_from_points(
     else:
         quats = random_quats(count, generator)
     logit = math.log(opacity / (1.0 - opacity))
+    # On one torch thread, like the model's activations: with two, torch's log of the 80,000 distances of
+    # a default room gave the second thread's half other values (up to 170 ulps off) in about one process
+    # in 30-50 on the 2-core development machine (2026-11-26; docs/performance.md, "Run to run"), so the
+    # same scene and seed started the fit from other scales.
+    with torch_threads(1):
+        log_distances = torch.log(distances)
     return GaussianModel(
         means=points.clone(),
         quats=quats,
-        log_scales=torch.log(distances)[:, None].repeat(1, 2),
+        log_scales=log_distances[:, None].repeat(1, 2),
         opacity_logits=torch.full((count,), logit),
         sh_dc=rgb_to_sh(rgb)[:, None, :],
         sh_rest=torch.zeros(count, num_sh_rest(sh_degree), 3),
