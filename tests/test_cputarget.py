@@ -127,7 +127,7 @@ with tempfile.TemporaryDirectory() as tmp:
     base = TrainParams()
     model = init_from_depth(scene, train, stride=1, max_points=4000, sh_degree=base.sh_degree,
                             opacity=base.init_opacity, seed=0)
-    stages.append(["initial Gaussians", digest([getattr(model, n) for n in model.PARAM_NAMES])])
+    stages.append(["initial Gaussians", {n: digest([getattr(model, n)])[:16] for n in model.PARAM_NAMES}])
 params = from_mapping(TrainParams, {"iterations": 12, "schedule_scale": 1.0, "densify_from": 0, "densify_until": 13,
                                     "densify_interval": 5, "normal_from": 0, "distortion_from": 0,
                                     "initial_sh_degree": base.sh_degree, "log_interval": 1,
