@@ -173,7 +173,8 @@ def test_wide_vectors_change_no_value():
                                 text=True, timeout=900)
         assert result.returncode == 0, result.stderr[-3000:]
         outputs.append(json.loads(result.stdout.strip().splitlines()[-1]))
-    assert first_difference(*outputs) is None, f"256-bit and 512-bit runs first differ at {first_difference(*outputs)}"
+    difference = first_difference(*outputs)
+    assert difference is None, f"256-bit and 512-bit runs first differ at {difference}"
     assert len(outputs[0]) == 2 + 12 + 2
 
 
