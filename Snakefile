@@ -25,6 +25,7 @@ include: "rules/lift.smk"
 include: "rules/evaluate.smk"
 include: "rules/report.smk"
 include: "rules/robustness.smk"
+include: "rules/effects.smk"
 
 
 rule reproduce:
@@ -44,3 +45,7 @@ rule reproduce:
         [f"{RESULTS}/plots/lift/{s}-{n}.png" for s in SCENES for n, v in VARIANTS.items() if v["lifting"] == "contrastive"],
         # object / NVS mIoU against the simulated mask inconsistency (config `robustness`)
         rules.robustness.output if ROBUSTNESS.get("scenes") else [],
+        # the other mask models, the oracle and the lift seeds (config `mask_models`, `oracle`, `seeds`):
+        # every run lifted, scored where the room has ground truth, and the effects table over all of them
+        [f"{RESULTS}/{s}/{r}/lift" for s, r in scene_runs()],
+        rules.effects.output if effects_spec()["runs"] else [],

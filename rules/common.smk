@@ -65,8 +65,8 @@ def deep_merge(base, override):
 
 def scene_config(scene):
     if scene in DERIVED:
-        base, level = DERIVED[scene]
-        return deep_merge(config["scenes"][base], {"masks": {"simulated": {"inconsistency": level}}})
+        base, masks = DERIVED[scene]
+        return deep_merge(config["scenes"][base], {"masks": masks})
     return config["scenes"][scene]
 
 
@@ -78,7 +78,7 @@ def scene_config(scene):
 # SimulateParams.inconsistency; a test keeps the two equal):
 SIMULATED_DEFAULT_INCONSISTENCY = 0.5
 ROBUSTNESS = config.get("robustness") or {}
-DERIVED = {}  # derived scene name -> (base scene, level)
+DERIVED = {}  # derived scene name -> (base scene, the masks settings merged over the base scene's)
 
 
 def base_scene(scene):
@@ -104,7 +104,45 @@ for _base in ROBUSTNESS.get("scenes", []):
     for _level in ROBUSTNESS.get("levels", []):
         _name = robustness_scene(_base, _level)
         if _name != _base:
-            DERIVED[_name] = (_base, float(_level))
+            DERIVED[_name] = (_base, {"simulated": {"inconsistency": float(_level)}})
+
+
+# --- mask models and the oracle: the same rooms under other 2D masks ----------------------------
+# `mask_models: {<model>: {masks: {...}, variants: [...]}}` adds, for every scene with ground truth,
+# a derived scene `<room>@<model>` whose masks settings are `masks` merged over the room's own (its
+# scene, poses and 2DGS fit are the room's), and runs `variants` on it.  `oracle: {variants: [...]}`
+# runs those variants on exact object masks: the room at simulated inconsistency 0 (`<room>@inc0`,
+# shared with the robustness curve), the upper end of every "share of the raw-to-oracle gap" figure.
+MASK_MODELS = config.get("mask_models") or {}
+ORACLE = config.get("oracle") or {}
+
+
+def _own_masks(base):
+    return deep_merge(config.get("defaults", {}).get("masks", {}), config["scenes"][base].get("masks", {}))
+
+
+for _model, _spec in MASK_MODELS.items():
+    for _base in SCENES:
+        if config["scenes"][_base]["kind"] in ("synthetic", "replica"):
+            DERIVED[f"{_base}@{_model}"] = (_base, _spec.get("masks") or {})
+
+
+def oracle_scene(base):
+    """The scene holding ``base`` with exact object masks (simulated at inconsistency 0)."""
+    return robustness_scene(base, 0.0)
+
+
+if ORACLE.get("variants"):
+    for _base in SCENES:
+        if config["scenes"][_base]["kind"] not in ("synthetic", "replica"):
+            continue
+        if _own_masks(_base).get("source", "simulated") != "simulated":
+            raise ValueError(f"config oracle: scene '{_base}' takes its masks from '{_own_masks(_base)['source']}'; "
+                             f"the oracle's exact object masks are the simulated source at inconsistency 0, so the "
+                             f"scene needs masks.source: simulated (other mask models go under mask_models).")
+        _name = oracle_scene(_base)
+        if _name != _base:
+            DERIVED[_name] = (_base, {"simulated": {"inconsistency": 0.0}})
 ALL_SCENES = SCENES + sorted(DERIVED)
 # scene, poses and gaussians exist for the configured scenes only (derived ones read their base's).
 BASE_SCENE_PATTERN = "|".join(re.escape(s) for s in SCENES)
@@ -191,6 +229,7 @@ def quoted_params(step):
 VARIANT_DEFAULTS = {"preset": "paper", "consistent_masks": True, "density_control": True, "lifting": "contrastive",
                     "overlay": False}
 VARIANTS = {name: {**VARIANT_DEFAULTS, **(v or {})} for name, v in config.get("variants", {"full": {}}).items()}
+# A variant's own `lift:` settings (e.g. the self-prompting prompt source) join the scene's lift params.
 for _name, _v in VARIANTS.items():
     if _v["overlay"] and (_v["consistent_masks"] or _v["density_control"]):
         raise ValueError(f"config variants.{_name}: overlay: true lifts the overlaid masks directly, so it needs "
@@ -203,14 +242,69 @@ for _name in ROBUSTNESS.get("variants", []):
                          f"({', '.join(VARIANTS)}).")
 
 
+for _model, _spec in MASK_MODELS.items():
+    for _name in _spec.get("variants", []):
+        if _name not in VARIANTS:
+            raise ValueError(f"config mask_models.{_model}.variants: '{_name}' is not one of the config's variants "
+                             f"({', '.join(VARIANTS)}).")
+for _name in ORACLE.get("variants", []):
+    if _name not in VARIANTS:
+        raise ValueError(f"config oracle.variants: '{_name}' is not one of the config's variants ({', '.join(VARIANTS)}).")
+
+# --- lift seeds: `seeds: {values: [0, 1, 2], variants: [...]}` --------------------------------------
+# A seed other than 0 is a run of its own, `<variant>.s<seed>` (results/<scene>/full.s1/lift, eval, ...),
+# with the lift's `seed` set to it; seed 0 keeps the variant's plain folder.  Only the lift (and what
+# follows it) depends on the seed, so the seeds share every step before it.
+SEEDS = config.get("seeds") or {}
+SEED_VALUES = [int(s) for s in SEEDS.get("values", [0])]
+for _name in SEEDS.get("variants", []):
+    if _name not in VARIANTS:
+        raise ValueError(f"config seeds.variants: '{_name}' is not one of the config's variants ({', '.join(VARIANTS)}).")
+
+
+def variant_runs(names):
+    """The run names (variant folders) of ``names``: each at seed 0, and at every seed of `seeds` for
+    the variants that `seeds.variants` lists."""
+    out = []
+    for name in names:
+        seeds = SEED_VALUES if name in SEEDS.get("variants", []) else [0]
+        for seed in sorted(set(seeds) | {0}):
+            out.append(name if seed == 0 else f"{name}.s{seed}")
+    return out
+
+
+def split_run(run):
+    """(variant name, lift seed) of a run folder name (``full`` -> (full, 0); ``full.s2`` -> (full, 2))."""
+    name, _, seed = run.partition(".s")
+    return name, int(seed) if seed else 0
+
+
 wildcard_constraints:
     preset="paper|official",
     masks="merged|patches",
-    variant="|".join(VARIANTS),
+    variant="(" + "|".join(VARIANTS) + r")(\.s[0-9]+)?",
 
 
 def variant(name):
-    return VARIANTS[name]
+    return VARIANTS[split_run(name)[0]]
+
+
+def run_label(run):
+    """What an evaluation writes into metrics.json about its run: variant name, settings, lift seed."""
+    name, seed = split_run(run)
+    return {"variant": name, **VARIANTS[name], "seed": seed}
+
+
+def scene_runs():
+    """Every (scene, run) that `reproduce` lifts: the config's scenes with all variants (and seeds),
+    each mask model's derived scenes with its variants, the oracle scenes with the oracle's variants."""
+    pairs = [(s, r) for s in SCENES for r in variant_runs(VARIANTS)]
+    for model, spec in MASK_MODELS.items():
+        pairs += [(f"{b}@{model}", r) for b in SCENES if f"{b}@{model}" in DERIVED
+                  for r in variant_runs(spec.get("variants", []))]
+    if ORACLE.get("variants"):
+        pairs += [(oracle_scene(b), f"{r}") for b in EVAL_SCENES for r in variant_runs(ORACLE["variants"])]
+    return sorted(set(pairs))
 
 
 def labels_dir(scene, v):
@@ -280,7 +374,10 @@ def lift_labels_arg(wildcards):
 
 def lift_params(wildcards):
     v = variant(wildcards.variant)
-    merged = json.loads(step_params(wildcards.scene, "lift"))
+    merged = deep_merge(json.loads(step_params(wildcards.scene, "lift")), v.get("lift") or {})
+    seed = split_run(wildcards.variant)[1]
+    if seed:
+        merged["seed"] = seed
     merged["method"] = v["lifting"]
     merged.setdefault("preset", v["preset"])
     if v["lifting"] == "labels":  # closed-form assignment: only its own keys apply
@@ -328,3 +425,27 @@ def robustness_spec():
                 merges.append({"scene": base, "level": float(level),
                                "merge": f"{RESULTS}/{scene}/merge-{consistent[0]['preset']}"})
     return {"runs": runs, "merges": merges}
+
+
+# --- effects (rules/effects.smk) ------------------------------------------------------------------
+def effects_spec():
+    """Every scored run beside the main tables' (mask models, oracle, seeds) and the main ones
+    themselves: {"runs": [{room, masks, variant, seed, eval}]}; `masks` names the mask model (the
+    rooms' own masks: "default"; exact object masks: "oracle")."""
+    runs = []
+    for scene, run in scene_runs():
+        base = base_scene(scene)
+        if base not in EVAL_SCENES:
+            continue
+        if scene == base:
+            masks = "default"
+        elif ORACLE.get("variants") and scene == oracle_scene(base) and split_run(run)[0] in ORACLE["variants"]:
+            masks = "oracle"
+        else:
+            masks = scene.split("@", 1)[1]
+        name, seed = split_run(run)
+        runs.append({"room": base, "masks": masks, "variant": name, "seed": seed,
+                     "eval": f"{RESULTS}/{scene}/{run}/eval"})
+    if not (MASK_MODELS or ORACLE.get("variants") or SEEDS.get("variants")):
+        runs = []
+    return {"runs": runs, "oracle": list(ORACLE.get("variants", [])), "raw": ORACLE.get("raw", "both_off")}

@@ -20,7 +20,7 @@ rule evaluate:
     params:
         p=evaluate_params("standard"),
         objects=lambda w, output: f"--objects {output.objects}",
-        label=lambda w: shlex.quote(json.dumps({"variant": w.variant, **variant(w.variant)}, sort_keys=True)),
+        label=lambda w: shlex.quote(json.dumps(run_label(w.variant), sort_keys=True)),
         code=code_version("scene.py", "render", "gaussians.py", "evaluation", "lifting", "tracing/git.py"),
     threads: 2
     resources:
@@ -44,7 +44,7 @@ use rule evaluate as evaluate_official with:
     params:
         p=evaluate_params("official"),
         objects="",
-        label=lambda w: shlex.quote(json.dumps({"variant": w.variant, **variant(w.variant)}, sort_keys=True)),
+        label=lambda w: shlex.quote(json.dumps(run_label(w.variant), sort_keys=True)),
         code=code_version("scene.py", "render", "gaussians.py", "evaluation", "lifting", "tracing/git.py"),
     log:
         f"{RESULTS}/logs/{{scene}}/{{variant}}/evaluate-official.log",
@@ -65,7 +65,7 @@ rule evaluate_nvos:
         directory(f"{RESULTS}/{{scene}}/{{variant}}/eval-nvos"),
     params:
         labels=lift_labels_arg,
-        label=lambda w: shlex.quote(json.dumps({"variant": w.variant, **variant(w.variant)}, sort_keys=True)),
+        label=lambda w: shlex.quote(json.dumps(run_label(w.variant), sort_keys=True)),
         code=code_version("scene.py", "render", "gaussians.py", "evaluation", "lifting", "tracing/git.py"),
     threads: 2
     resources:

@@ -308,3 +308,55 @@ def test_a_rules_code_hash_covers_the_modules_its_step_imports(rule, module):
         if not any(rel_file == p or rel_file.startswith(p.rstrip("/") + "/") for p in parts):
             missing.append(rel_file)
     assert not missing, f"rule {rule}: code_version does not hash {missing}"
+
+
+def _study_config():
+    return {"scenes": {"a": {"kind": "synthetic"}, "b": {"kind": "synthetic"}},
+            "variants": {**GRID, "sp": {"lifting": "self_prompt", "lift": {"points": 5}}},
+            "mask_models": {"hi": {"masks": {"simulated": {"inconsistency": 1.0}}, "variants": ["full", "both_off"]}},
+            "oracle": {"variants": ["both_off"]},
+            "seeds": {"values": [0, 2], "variants": ["full", "both_off"]}}
+
+
+def test_mask_models_oracle_and_seeds_share_the_rooms_fit(tmp_path):
+    """A mask model is a derived scene <room>@<model> on the room's scene, poses and fit; the oracle is the
+    room at inconsistency 0; a lift seed s > 0 is the run <variant>.s<s> with the lift's seed set; the
+    effects table reads every one of them."""
+    result = run_snakemake(tmp_path, "-n", "-p", "reproduce", config=_study_config())
+    assert result.returncode == 0, result.stderr[-3000:]
+    shells = [line[line.index("trace3d "):] for line in result.stdout.splitlines() if "trace3d --threads" in line]
+    outs = {}
+    for line in shells:
+        words = line.split()
+        outs.setdefault(words[3], []).append(words[words.index("--out") + 1])
+    for step in ("scene", "poses", "gaussians"):
+        assert sorted(outs[step]) == [f"results/a/{step}", f"results/b/{step}"], outs[step]
+    assert sorted(outs["masks"]) == ["results/a/masks", "results/a@hi/masks", "results/a@inc0/masks",
+                                     "results/b/masks", "results/b@hi/masks", "results/b@inc0/masks"]
+    lifts = {line.split("--out ")[1].split()[0]: line for line in shells if " lift --scene" in line}
+    assert sorted(k for k in lifts if "@" in k) == sorted(
+        [f"results/{r}@hi/{v}/lift" for r in "ab" for v in ("full", "full.s2", "both_off", "both_off.s2")]
+        + [f"results/{r}@inc0/{v}/lift" for r in "ab" for v in ("both_off", "both_off.s2")])
+    assert '"seed": 2' in lifts["results/a@hi/full.s2/lift"] and '"seed"' not in lifts["results/a@hi/full/lift"]
+    assert "--gaussians results/a@hi/refine-paper-merged " in lifts["results/a@hi/full.s2/lift"]
+    assert "--gaussians results/a/gaussians " in lifts["results/a@inc0/both_off/lift"]
+    assert '"points": 5' in lifts["results/a/sp/lift"] and "results/a/sp.s2/lift" not in lifts
+    evals = [line for line in shells if " evaluate --scene" in line and "results/a/full.s2/eval" in line]
+    assert len(evals) == 1 and '"seed": 2' in evals[0] and '"variant": "full"' in evals[0]
+    effects = [line for line in shells if " effects --spec" in line]
+    assert len(effects) == 1
+    spec = json.loads(effects[0].split("--spec ")[1].split(" --out")[0].strip("'"))
+    masks = {(r["room"], r["masks"], r["variant"], r["seed"]) for r in spec["runs"]}
+    assert ("a", "oracle", "both_off", 2) in masks and ("b", "hi", "full", 0) in masks
+    assert ("a", "default", "sp", 0) in masks and spec["oracle"] == ["both_off"]
+
+
+@pytest.mark.parametrize("override, message", [
+    ({"mask_models": {"hi": {"masks": {}, "variants": ["nope"]}}}, "mask_models.hi.variants: 'nope' is not one"),
+    ({"oracle": {"variants": ["nope"]}}, "oracle.variants: 'nope' is not one"),
+    ({"seeds": {"values": [1], "variants": ["nope"]}}, "seeds.variants: 'nope' is not one"),
+])
+def test_study_config_mistakes_are_one_sentence(tmp_path, override, message):
+    result = run_snakemake(tmp_path, "-n", "reproduce", config={**_study_config(), **override})
+    assert result.returncode != 0
+    assert message in result.stdout + result.stderr

@@ -251,6 +251,13 @@ def _cmd_robustness(args: argparse.Namespace) -> None:
     write_robustness(load_params_arg(args.spec), Path(args.out), Path(args.plot) if args.plot else None)
 
 
+def _cmd_effects(args: argparse.Namespace) -> None:
+    from .params import load_params_arg
+    from .report.effects import write_effects
+
+    write_effects(load_params_arg(args.spec), Path(args.out), Path(args.plot) if args.plot else None)
+
+
 def _cmd_lift(args: argparse.Namespace) -> None:
     from .io import atomic_dir
     from .lifting.step import parse_lift_params, run_lift
@@ -464,6 +471,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="Markdown table (results/tables/robustness.md; a CSV beside it)")
     p.add_argument("--plot", help="PNG of the curves (results/plots/robustness.png)")
     p.set_defaults(func=_cmd_robustness)
+
+    p = sub.add_parser("effects", help="every variant under every mask model and seed: 95 % CIs, paired effects, "
+                                       "share of the raw-to-oracle gap")
+    p.add_argument("--spec", required=True,
+                   help="JSON/YAML (or @file): {runs: [{room, masks, variant, seed, eval}], oracle: [variants], raw}")
+    p.add_argument("--out", required=True, help="Markdown table (results/tables/effects.md; CSVs beside it)")
+    p.add_argument("--plot", help="PNG of the means and intervals (results/plots/effects.png)")
+    p.set_defaults(func=_cmd_effects)
 
 
     p = sub.add_parser("lift", help="lift the instance maps into the scene: contrastive features or self-prompting")

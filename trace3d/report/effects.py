@@ -1,0 +1,244 @@
+"""The study table: every variant under every mask model, with 95 % confidence intervals, the paired
+effect of each stage and the share of the raw-to-oracle gap each variant closes (``rules/effects.smk``).
+
+Input: a spec, one entry per scored run::
+
+    {"runs": [{"room": "room0", "masks": "default", "variant": "full", "seed": 0,
+               "eval": "results/room0/full/eval"}, ...],
+     "oracle": ["both_off"],     # the variants run on exact object masks (masks == "oracle")
+     "raw": "both_off"}          # the lower end of the gap
+
+A *sample* is one (room, seed).  For a mask model and a variant, a metric's mean and its 95 %
+confidence interval (Student's t) are over the samples.  The *paired effect* of a stage compares two
+variants on the same samples (e.g. ``full - no_merge``: what merging adds with density control on);
+its interval is the t interval of the paired differences, and ``wins`` counts the samples where the
+difference is positive.  The *gap share* of a variant is ``mean(v - raw) / mean(oracle - raw)`` over the
+samples that have all three, where ``oracle`` is the first oracle variant on exact object masks for
+the same room and seed: 0 = no better than the raw patches, 1 = as good as exact masks.
+
+Output: ``effects.md`` (Markdown), ``effects.csv`` (every number) and a plot.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ..errors import SceneFormatError, Trace3DError
+from ..io import atomic_file
+from .summary import _read_json
+
+# (column, section path in metrics.json, scale): metrics read when present.
+METRICS = (
+    ("object mIoU", ("extraction", "mIoU"), 100.0),
+    ("NVS mIoU", ("nvs", "mIoU"), 100.0),
+    ("PQ scene", ("panoptic", "PQ"), 100.0),
+    ("scene mIoU", ("panoptic", "mIoU"), 100.0),
+    ("object mIoU 1pt", ("single_query", "extraction", "mIoU"), 100.0),
+    ("NVS mIoU 1pt", ("single_query", "nvs", "mIoU"), 100.0),
+)
+# Paired effects: (label, variant, minus variant).
+EFFECTS = (
+    ("merge (refine on): full - no_merge", "full", "no_merge"),
+    ("merge (refine off): no_refine - both_off", "no_refine", "both_off"),
+    ("refine (merge on): full - no_refine", "full", "no_refine"),
+    ("refine (merge off): no_merge - both_off", "no_merge", "both_off"),
+    ("both: full - both_off", "full", "both_off"),
+)
+
+
+def _check_spec(spec: dict) -> None:
+    runs = spec.get("runs")
+    if not isinstance(runs, list) or not runs:
+        raise Trace3DError("effects spec: 'runs' must be a non-empty list of {room, masks, variant, seed, eval}.")
+    for run in runs:
+        missing = [k for k in ("room", "masks", "variant", "seed", "eval") if k not in run]
+        if missing:
+            raise Trace3DError(f"effects spec: a run lacks {', '.join(missing)}: {run}.")
+
+
+def _lookup(data: dict, path: tuple[str, ...]):
+    for key in path:
+        if not isinstance(data, dict) or key not in data:
+            return None
+        data = data[key]
+    return data
+
+
+def collect(spec: dict) -> pd.DataFrame:
+    """One row per run: room, masks, variant, seed and every metric of its ``metrics.json`` (NaN where absent)."""
+    _check_spec(spec)
+    rows = []
+    for run in spec["runs"]:
+        path = Path(run["eval"]) / "metrics.json"
+        data = _read_json(path)
+        for section in ("extraction", "nvs"):
+            if not isinstance(data.get(section), dict):
+                raise SceneFormatError(f"{path}: the '{section}' section is missing; is it an evaluate step's "
+                                       f"metrics.json?")
+        row = {"room": str(run["room"]), "masks": str(run["masks"]), "variant": str(run["variant"]),
+               "seed": int(run["seed"])}
+        for name, keys, scale in METRICS:
+            value = _lookup(data, keys)
+            row[name] = float(value) * scale if isinstance(value, (int, float)) and value is not None else np.nan
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def t_interval(values) -> tuple[float, float, int]:
+    """(mean, half-width of the two-sided 95 % Student-t interval, n) of the finite ``values``;
+    the half-width is NaN for fewer than two values."""
+    v = np.asarray([x for x in values if np.isfinite(x)], dtype=np.float64)
+    n = len(v)
+    if n == 0:
+        return math.nan, math.nan, 0
+    mean = float(v.mean())
+    if n < 2:
+        return mean, math.nan, n
+    from scipy.stats import t
+
+    half = float(t.ppf(0.975, n - 1) * v.std(ddof=1) / math.sqrt(n))
+    return mean, half, n
+
+
+def _paired(frame: pd.DataFrame, masks: str, a: str, b: str, metric: str,
+            b_masks: str | None = None) -> pd.DataFrame:
+    """Samples (room, seed) with both ``a`` under ``masks`` and ``b`` under ``b_masks`` (default the same)."""
+    left = frame[(frame.masks == masks) & (frame.variant == a)][["room", "seed", metric]]
+    right = frame[(frame.masks == (b_masks or masks)) & (frame.variant == b)][["room", "seed", metric]]
+    joined = left.merge(right, on=["room", "seed"], suffixes=("_a", "_b"))
+    return joined.dropna()
+
+
+def summarize(frame: pd.DataFrame, oracle: list[str], raw: str) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """(per mask model and variant: mean, CI, n and gap share per metric; paired effects)."""
+    metrics = [m for m, _, _ in METRICS if frame[m].notna().any()]
+    oracle_variant = oracle[0] if oracle else None
+    rows = []
+    for (masks, name), group in sorted(frame.groupby(["masks", "variant"]), key=lambda kv: kv[0]):
+        row = {"masks": masks, "variant": name}
+        for m in metrics:
+            mean, half, n = t_interval(group[m])
+            row[f"{m} mean"], row[f"{m} ci95"], row[f"{m} n"] = mean, half, n
+            share = math.nan
+            if oracle_variant is not None and masks != "oracle":
+                v_raw = _paired(frame, masks, name, raw, m)
+                o_raw = _paired(frame, "oracle", oracle_variant, raw, m, b_masks=masks)
+                both = v_raw.merge(o_raw, on=["room", "seed"], suffixes=("_v", "_o"))
+                gap = float((both[f"{m}_a_o"] - both[f"{m}_b_o"]).mean()) if len(both) else math.nan
+                if len(both) and abs(gap) > 1e-9:
+                    share = float((both[f"{m}_a_v"] - both[f"{m}_b_v"]).mean()) / gap
+            row[f"{m} gap share"] = share
+        rows.append(row)
+    summary = pd.DataFrame(rows)
+    effects = []
+    for masks in sorted(frame.masks.unique()):
+        if masks == "oracle":
+            continue
+        for label, a, b in EFFECTS:
+            for m in metrics:
+                pairs = _paired(frame, masks, a, b, m)
+                if pairs.empty:
+                    continue
+                diff = pairs[f"{m}_a"] - pairs[f"{m}_b"]
+                mean, half, n = t_interval(diff)
+                rooms = diff.groupby(pairs["room"]).mean()
+                r_mean, r_half, r_n = t_interval(rooms)
+                effects.append({"masks": masks, "effect": label, "metric": m, "mean": mean, "ci95": half, "n": n,
+                                "wins": int((diff > 0).sum()), "rooms ci95": r_half, "rooms": r_n})
+    return summary, pd.DataFrame(effects)
+
+
+def _fmt(mean: float, half: float) -> str:
+    if not np.isfinite(mean):
+        return "–"
+    return f"{mean:.1f}" if not np.isfinite(half) else f"{mean:.1f} ± {half:.1f}"
+
+
+def _share(value: float) -> str:
+    return "–" if not np.isfinite(value) else f"{100 * value:.0f} %"
+
+
+def markdown(summary: pd.DataFrame, effects: pd.DataFrame, frame: pd.DataFrame) -> str:
+    metrics = [m for m, _, _ in METRICS if f"{m} mean" in summary]
+    lines = ["**Variants under each mask model**: mean ± half-width of the 95 % confidence interval over "
+             "rooms × lift seeds (n samples); *gap* = share of the raw-to-oracle gap the variant closes "
+             "(raw patches without refinement = 0 %, the oracle on exact object masks = 100 %).", ""]
+    for masks in sorted(summary.masks.unique(), key=lambda m: (m == "oracle", m != "default", m)):
+        part = summary[summary.masks == masks]
+        rooms = sorted(frame[frame.masks == masks].room.unique())
+        lines += [f"*Masks: {masks}* ({len(rooms)} rooms: {', '.join(rooms)})", ""]
+        header = ["variant", "n"] + [c for m in metrics for c in (m, "gap")]
+        lines += ["| " + " | ".join(header) + " |", "|---|" + "---:|" * (len(header) - 1)]
+        for _, r in part.iterrows():
+            n = int(max(r[f"{m} n"] for m in metrics))
+            cells = [r.variant, str(n)]
+            for m in metrics:
+                cells += [_fmt(r[f"{m} mean"], r[f"{m} ci95"]), _share(r[f"{m} gap share"])]
+            lines.append("| " + " | ".join(cells) + " |")
+        lines.append("")
+    if not effects.empty:
+        lines += ["**Paired effects** (same rooms and seeds): mean difference in points ± 95 % CI over rooms × "
+                  "seeds, the CI over rooms alone (seed-averaged), and the samples where the first variant wins.", ""]
+        header = ["masks", "effect", "metric", "difference", "CI over rooms", "wins"]
+        lines += ["| " + " | ".join(header) + " |", "|---|---|---|---:|---:|---:|"]
+        for _, e in effects.iterrows():
+            lines.append(f"| {e.masks} | {e.effect} | {e.metric} | {_fmt(e['mean'], e['ci95'])} | "
+                         f"± {e['rooms ci95']:.1f} ({e['rooms']} rooms) | {e.wins}/{e.n} |"
+                         if np.isfinite(e["rooms ci95"]) else
+                         f"| {e.masks} | {e.effect} | {e.metric} | {_fmt(e['mean'], e['ci95'])} | – | {e.wins}/{e.n} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def plot(summary: pd.DataFrame, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    metrics = [m for m, _, _ in METRICS if f"{m} mean" in summary][:4]
+    models = sorted(summary.masks.unique(), key=lambda m: (m == "oracle", m != "default", m))
+    fig, axes = plt.subplots(1, len(metrics), figsize=(4.2 * len(metrics), 3.8), squeeze=False)
+    variants = sorted(summary.variant.unique())
+    width = 0.8 / max(len(variants), 1)
+    for ax, m in zip(axes[0], metrics):
+        for i, name in enumerate(variants):
+            part = summary[summary.variant == name].set_index("masks")
+            xs = [j + (i - (len(variants) - 1) / 2) * width for j, mk in enumerate(models) if mk in part.index]
+            ys = [part.loc[mk, f"{m} mean"] for mk in models if mk in part.index]
+            es = [np.nan_to_num(part.loc[mk, f"{m} ci95"]) for mk in models if mk in part.index]
+            ax.bar(xs, ys, width, yerr=es, capsize=2, label=name)
+        ax.set_xticks(range(len(models)), models, rotation=20)
+        ax.set_title(m + " (%)")
+        ax.grid(axis="y", alpha=0.3)
+    axes[0][-1].legend(fontsize=7, loc="lower right")
+    fig.suptitle("Variants under each mask model: mean and 95 % CI over rooms × seeds")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_file(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
+def write_effects(spec: dict, out: Path, plot_path: Path | None = None) -> None:
+    frame = collect(spec)
+    summary, effects = summarize(frame, list(spec.get("oracle") or []), str(spec.get("raw", "both_off")))
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_file(out) as tmp:
+        tmp.write_text(markdown(summary, effects, frame))
+    csv = out.with_suffix(".csv")
+    with atomic_file(csv) as tmp:
+        text = summary.to_csv(index=False, float_format="%.6g")
+        if not effects.empty:
+            text += "\n" + effects.to_csv(index=False, float_format="%.6g")
+        tmp.write_text(text)
+    raw_csv = out.with_name(out.stem + "_runs.csv")
+    with atomic_file(raw_csv) as tmp:
+        tmp.write_text(frame.sort_values(["masks", "variant", "room", "seed"]).to_csv(index=False, float_format="%.6g"))
+    if plot_path is not None:
+        plot(summary, Path(plot_path))
