@@ -369,7 +369,7 @@ class SegmentationQuality:
 
 def segmentation_quality(truths: Sequence[np.ndarray], preds: Sequence[np.ndarray], min_pixels: int = 50,
                          cover: float = 0.8, straddle: float = 0.2) -> SegmentationQuality:
-    """ARI over the labelled ground-truth pixels, coverage and straddling (see the README's definitions).
+    """ARI over the labelled ground-truth pixels, coverage and straddling (definitions in docs/tracing.md).
 
     Args:
         truths: per view, ground-truth ids [H, W] (0 unlabelled, excluded).
