@@ -1,8 +1,8 @@
 """Statistics of mask sets, for calibrating simulated masks against published descriptions of SAM.
 
 :func:`view_statistics` measures one view's masks; :func:`mask_set_statistics` averages them over
-the views of a scene; ``trace3d masks-stats`` prints them for a masks folder (docs/masks_calibration.md
-lists the targets).  Nothing here reads a method's output or score: only masks, the patches made from
+the views of a scene; ``trace3d masks-stats`` prints them for a masks folder beside the calibration
+targets :data:`CALIBRATION_TARGETS` (docs/masks_calibration.md gives their sources).  Nothing here reads a method's output or score: only masks, the patches made from
 them by the patch step's defaults, and (for the per-object counts) the ground-truth instance maps.
 
 Per view:
@@ -41,6 +41,27 @@ STATISTICS = (
     "masks", "multi_covered", "uncovered", "nested", "enclosed_fine", "masks_per_object", "patches",
     "patches_per_object", "whole_fraction", "objects",
 )
+
+# Calibration targets of the nested model on the default rooms (docs/masks_calibration.md gives the
+# source of each): statistic -> (target, lowest accepted, highest accepted), means over views.
+CALIBRATION_TARGETS: dict[str, tuple[float, float, float]] = {
+    "masks_per_object": (4.0, 3.0, 5.0),
+    "multi_covered": (0.50, 0.35, 0.65),
+    "uncovered": (0.03, 0.01, 0.08),
+    "nested": (0.60, 0.50, 0.75),
+    "patches_per_object": (3.0, 2.5, 4.0),
+    "whole_fraction": (0.85, 0.75, 0.92),
+}
+
+
+def check_targets(stats: dict[str, dict[str, float]], targets=None) -> dict[str, dict]:
+    """Each calibration target beside the measured mean: {name: {target, low, high, measured, ok}}."""
+    out = {}
+    for name, (target, low, high) in (targets or CALIBRATION_TARGETS).items():
+        measured = stats[name]["mean"]
+        out[name] = {"target": target, "low": low, "high": high, "measured": measured,
+                     "ok": bool(low <= measured <= high)}
+    return out
 
 
 def _containment(masks: np.ndarray) -> np.ndarray:
@@ -154,4 +175,7 @@ def scene_statistics(scene: Scene, masks_dir: str | Path, patch_params: PatchPar
         per_view.append(view_statistics(masks, inst, scene.objects, patch_params))
     stats = mask_set_statistics(per_view)
     log.info("masks-stats: %d views, %.1f masks per view", len(per_view), stats.get("masks", {}).get("mean", 0.0))
-    return {"views": len(per_view), "statistics": stats}
+    result = {"views": len(per_view), "statistics": stats}
+    if all(name in stats for name in CALIBRATION_TARGETS):
+        result["targets"] = check_targets(stats)
+    return result
