@@ -133,6 +133,24 @@ def _cmd_patches(args: argparse.Namespace) -> None:
         run_patches(scene, Path(args.masks), tmp, load_params_arg(args.params))
 
 
+def _cmd_masks_stats(args: argparse.Namespace) -> None:
+    import json
+
+    from .io import write_json
+    from .params import from_mapping, load_params_arg
+    from .scene import Scene
+
+    scene = Scene.read(args.scene)
+    from .masks.patches import PatchParams
+    from .masks.stats import scene_statistics
+
+    patch_params = from_mapping(PatchParams, load_params_arg(args.patch_params), "patches params")
+    result = scene_statistics(scene, Path(args.masks), patch_params)
+    if args.out:
+        write_json(Path(args.out), result)
+    print(json.dumps(result, indent=2))
+
+
 def _cmd_overlay(args: argparse.Namespace) -> None:
     from .io import atomic_dir
     from .scene import Scene
@@ -385,6 +403,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--source", default="simulated", choices=["simulated", "files", "sam"])
     p.add_argument("--params", help=params_help)
     p.set_defaults(func=_cmd_masks)
+
+    p = sub.add_parser("masks-stats", help="statistics of a masks folder (calibration: docs/masks_calibration.md)")
+    p.add_argument("--scene", required=True)
+    p.add_argument("--masks", required=True, help="a `trace3d masks` output folder")
+    p.add_argument("--patch-params", help="patch step parameters for the patch statistics (" + params_help + ")")
+    p.add_argument("--out", help="also write the statistics to this JSON file")
+    p.set_defaults(func=_cmd_masks_stats)
 
     p = sub.add_parser("patches", help="overlap masks into disjoint primitive patches + hierarchy")
     p.add_argument("--scene", required=True)

@@ -3,8 +3,11 @@
 Mask sources (config key ``masks.source``), each yielding per frame a bool stack [M, H, W] and
 scores [M]:
 
-* ``simulated`` (:mod:`.simulate`): SAM-like masks from the ground truth, with controlled
-  cross-view inconsistency; the default for the synthetic benchmark.
+* ``simulated``: SAM-like masks from the ground truth, with controlled cross-view inconsistency;
+  the default for the synthetic benchmark.  Two models, chosen by ``model`` among its
+  parameters: ``one_level`` (:mod:`.simulate`, the default: one granularity per object and view,
+  overlaps only sometimes) and ``nested`` (:mod:`.nested`: SAM's automatic generator, nested
+  subpart / part / whole / group masks, calibrated in docs/masks_calibration.md).
 * ``files`` (:mod:`.files`): masks computed elsewhere, from the scene's ``masks/`` folder.
 * ``sam`` (:mod:`.sam`): Segment Anything's automatic mask generator (optional package).
 
@@ -22,12 +25,13 @@ from typing import Iterator
 
 import numpy as np
 
-from ..errors import SceneFormatError, Trace3DError
+from ..errors import ConfigError, SceneFormatError, Trace3DError
 from ..io import atomic_file, write_json
 from ..params import from_mapping, to_dict
 from ..scene import Scene
 from .files import FilesParams, iter_file_masks, read_mask_npz
 from .patches import PatchHierarchy, PatchParams, masks_to_patches, read_patches, run_patches
+from .nested import NestedParams, iter_nested_masks, nested_view_masks
 from .sam import SamParams, iter_sam_masks
 from .simulate import (
     SimulatedPromptSegmenter,
@@ -42,10 +46,13 @@ from .simulate import (
 log = logging.getLogger(__name__)
 
 SOURCES = ("simulated", "files", "sam")
+SIMULATED_MODELS = ("one_level", "nested")
 
 __all__ = [
     "SOURCES",
     "FilesParams",
+    "NestedParams",
+    "SIMULATED_MODELS",
     "PatchHierarchy",
     "PatchParams",
     "SamParams",
@@ -55,6 +62,7 @@ __all__ = [
     "frame_rng",
     "iter_masks",
     "masks_to_patches",
+    "nested_view_masks",
     "object_status",
     "parse_params",
     "read_mask_npz",
@@ -69,6 +77,13 @@ __all__ = [
 def parse_params(source: str, params: dict | None):
     """The typed parameter set of ``source`` from a raw config mapping (unknown keys refused)."""
     if source == "simulated":
+        model = (params or {}).get("model", "one_level") if isinstance(params, dict) else "one_level"
+        if model == "nested":
+            return from_mapping(NestedParams, params, "masks params (simulated, model nested)")
+        if model != "one_level":
+            raise ConfigError(
+                f"masks params (simulated).model: {model!r} is not one of {list(SIMULATED_MODELS)}."
+            )
         return from_mapping(SimulateParams, params, "masks params (simulated)")
     if source == "files":
         return from_mapping(FilesParams, params, "masks params (files)")
@@ -80,6 +95,8 @@ def parse_params(source: str, params: dict | None):
 def iter_masks(scene: Scene, source: str, params) -> Iterator[tuple[str, np.ndarray, np.ndarray]]:
     """Yield (frame name, masks [M, H, W] bool, scores [M] float32) for every frame of ``scene``."""
     if source == "simulated":
+        if isinstance(params, NestedParams):
+            return iter_nested_masks(scene, params)
         return iter_simulated_masks(scene, params)
     if source == "files":
         return iter_file_masks(scene, params)

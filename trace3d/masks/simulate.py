@@ -50,6 +50,7 @@ class SimulateParams:
     """Parameters of the simulated mask source.  Rates are per object per view at inconsistency 1.
 
     Attributes:
+        model: always ``"one_level"`` (this model; ``"nested"`` selects :mod:`.nested` instead).
         seed: random seed (combined with the frame index).
         inconsistency: in [0, 1]; scales every rate and amplitude below (0: exact object masks).
         part_rate: probability that an object with >= 2 visible parts is given as its parts.
@@ -68,6 +69,7 @@ class SimulateParams:
         min_mask_pixels: masks with fewer pixels are dropped.
     """
 
+    model: str = "one_level"
     seed: int = 0
     inconsistency: float = 0.5
     part_rate: float = 0.6
@@ -86,6 +88,8 @@ class SimulateParams:
     min_mask_pixels: int = 16
 
     def __post_init__(self) -> None:
+        if self.model != "one_level":
+            raise ValueError(f"model must be 'one_level' for these parameters, got {self.model!r}")
         for name in ("inconsistency", "part_rate", "group_rate", "multi_rate", "miss_rate", "split_rate",
                      "small_fraction", "flat_fraction"):
             value = getattr(self, name)
