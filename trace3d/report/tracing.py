@@ -11,6 +11,15 @@ from ..io import atomic_file
 from .summary import _read_json
 
 
+PAIRS_NOTE = (
+    " Pairs of patches in a view: a patch belongs to the ground-truth object holding most of its pixels (patches "
+    "mostly on unlabelled pixels left out); a pair should merge when both belong to one object. Pair precision / "
+    "recall: of the candidate pairs the merge compared, merged pairs that should merge / merged pairs, and merged "
+    "should-merge pairs / should-merge candidate pairs; should-merge out of reach: share of all should-merge pairs "
+    "that were never candidates; should-merge joined: share of them that ended in one instance (directly or "
+    "through other merges).")
+
+
 def tracing_row(merge_dir: Path, refine_dir: Path | None) -> dict:
     """One row from ``<merge_dir>/merge.json`` and (optionally) ``<refine_dir>/refine.json``; the scene
     is named after the folder that holds them."""
@@ -23,6 +32,12 @@ def tracing_row(merge_dir: Path, refine_dir: Path | None) -> dict:
         for key, name in (("ari", "ARI"), ("covered", "covered"), ("straddling", "straddling")):
             row[f"{name} before"] = truth["before"][key]
             row[f"{name} after"] = truth["after"][key]
+        pairs = truth.get("pairs")
+        if pairs:  # per-pair merge decisions against the ground truth (merge.py, PairQuality)
+            for key, name in (("precision", "pair precision"), ("recall", "pair recall"),
+                              ("out_of_reach_share", "should-merge out of reach"),
+                              ("joined_recall", "should-merge joined")):
+                row[name] = np.nan if pairs[key] is None else pairs[key]
     if refine_dir is not None:
         refine = _read_json(Path(refine_dir) / "refine.json")
         row.update({
@@ -52,7 +67,8 @@ def write_tracing_table(merge_dirs: list[Path], refine_dirs: list[Path] | None, 
             "covered: fraction of objects (per view, >= 50 px) of which one instance holds >= 80 %; straddling: "
             "fraction of instances (>= 50 px) whose second object holds >= 20 % of them; near boundary: fraction "
             "of Gaussians whose footprint in their dominant view touches the 2-px band of a ground-truth object "
-            "boundary.\n\n" + shown.to_markdown(index=False, floatfmt=".3f") + "\n")
+            "boundary." + (PAIRS_NOTE if "pair precision" in table else "") + "\n\n"
+            + shown.to_markdown(index=False, floatfmt=".3f") + "\n")
     with atomic_file(out) as tmp:
         tmp.write_text(text)
     with atomic_file(Path(out).with_suffix(".csv")) as tmp:

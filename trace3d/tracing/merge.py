@@ -2,13 +2,19 @@
 
 For two patches P_a, P_b of a view v0, G_a and G_b are the Gaussians whose argmax patch in v0 is
 P_a (P_b) — the supplementary's argmax reduction of W — and visible in v0. Over the other views v,
-the co-visible triples are Omega = {(G_a, G_b, v) : both visible in v}, and
+the co-visible triples are Omega = {(G_a, G_b, v) : both have a vote in v}, and
 
     sim(P_a, P_b) = 1/|Omega| sum_Omega [argmax_v(G_a) == argmax_v(G_b)],
 
 the inner product of the two Gaussians' (one-hot, argmax-reduced) instance distributions in v.
-Pairs with sim > theta (0.5; ``official`` 0.4) merge (union-find), considering only pairs inside a
-common coarser mask (supplementary, "Scalability of patch merging").
+A Gaussian has a vote in v when it is visible there and, under ``uncovered: exclude`` (both
+presets; the released code's ``valid_weight_mask``), its argmax there is not label 0 (pixels no
+mask covers): agreement on being uncovered is no evidence of one instance. Pairs with sim > theta
+(0.5; ``official`` 0.4) merge (union-find). Candidate pairs: those inside a common coarser mask
+(supplementary, "Scalability of patch merging"; ``candidates: coarser_mask``, the default) or all
+pairs of the view (main text; ``all_pairs``). The ``official`` preset adds the released code's
+minimum support (:class:`VoteRule`): more than 100 Gaussians per patch, voting views where more than
+20 % of each set votes, at least 2 of them, and Gaussians with at least 3 votes among them.
 
 **Cost.** The sum over Gaussian pairs factors per view into histograms of the two sets' labels:
 with h_a[v, l] = |{i in G_a : visible in v, label_v(i) = l}| and n_a[v] = sum_l h_a[v, l],
@@ -16,8 +22,11 @@ with h_a[v, l] = |{i in G_a : visible in v, label_v(i) = l}| and n_a[v] = sum_l 
     sum_Omega [same] = sum_v <h_a[v], h_b[v]>,   |Omega| = sum_v n_a[v] n_b[v],
 
 so one source view costs one pass over its visible Gaussians and all views
-(:func:`cooccurrence`, numba), instead of |G_a| |G_b| L. :func:`pair_similarity_bruteforce` is
-the pair loop the tests compare against. The source view v0 itself is left out of the vote (in v0
+(:func:`cooccurrence`, numba), instead of |G_a| |G_b| L (label 0 excluded: the sums run over
+l >= 1; a view filter: the sums run over the pair's voting views). Only a minimum number of voting
+views per Gaussian breaks the factoring: it depends on the pair's views, so that rule histograms
+each pair's Gaussians (:func:`_vote_per_gaussian`). :func:`pair_similarity_bruteforce` is the
+pair loop the tests compare against. The source view v0 itself is left out of the vote (in v0
 the two sets disagree by construction).
 
 **Ids across views** (beyond the paper, which merges within each view only): merged instances of
@@ -43,19 +52,38 @@ from .git import GITStats
 log = logging.getLogger(__name__)
 
 PRESET_VALUES = {
-    "paper": {"threshold": 0.5, "min_visibility": 0.0},
-    "official": {"threshold": 0.4, "min_visibility": 25.0},
+    "paper": {"threshold": 0.5, "min_visibility": 0.0, "uncovered": "exclude", "min_gaussians": 0,
+              "min_view_share": 0.0, "min_views": 1, "min_gaussian_views": 0},
+    # merge_patches.py / utils/con_mask_utils.py of the released code: an unseen Gaussian is one with
+    # zero weight (its 25-pixel threshold belongs to the refine script, remove_ab_gaus.py), label 0 is
+    # invalid (valid_weight_mask), a patch needs more than GAUS_NUM_TH = 100 Gaussians, a view votes
+    # when more than vf_th = 0.2 of both sets are valid there, at least 2 such views, and a Gaussian
+    # votes with more than 2 valid voting views (filter_weights' ct_th + 1 below 160 views).
+    "official": {"threshold": 0.4, "min_visibility": 0.0, "uncovered": "exclude", "min_gaussians": 100,
+                 "min_view_share": 0.2, "min_views": 2, "min_gaussian_views": 3},
 }
 
 
 @dataclass
 class MergeParams:
-    """Parameters of the ``merge`` step (``None`` takes the preset's value).
+    """Parameters of the ``merge`` step (``None`` takes the preset's value; docs/tracing.md).
 
     threshold: merge patch pairs whose similarity exceeds it (paper 0.5, official 0.4).
-    min_visibility: a Gaussian sees a view when its GIT visibility exceeds this (paper: any weight,
-        0.0; official: more than 25 pixels, with the pixel-count statistic).
-    common_mask_only: consider only pairs of patches inside a common coarser mask (supplementary).
+    min_visibility: a Gaussian sees a view when its GIT visibility exceeds this (both presets 0.0:
+        any weight, the released merge_patches.py's "unseen = zero weight").
+    candidates: which pairs of a view are compared: ``coarser_mask`` (default), the pairs of
+        patches inside a common coarser mask (supplementary, "Scalability of patch merging"; the
+        released code's conflict areas); ``all_pairs``, every pair of patches of the view (the
+        paper's main text, Sec. 3.3).
+    uncovered: label 0 (pixels no mask covers) in the vote: ``exclude`` (both presets; the released
+        code's valid_weight_mask): no vote; ``label``: an ordinary label, two uncovered Gaussians agree.
+    min_gaussians: a patch takes part only with more than this many Gaussians (official 100:
+        GAUS_NUM_TH; paper 0).
+    min_view_share: a view votes on a pair only when more than this share of each patch's Gaussians
+        vote there (official 0.2: vf_th; paper 0.0, every co-visible view).
+    min_views: a pair with fewer voting views is not merged (official 2; paper 1).
+    min_gaussian_views: a Gaussian votes only with a vote in at least this many of the pair's
+        voting views (official 3; paper 0).
     association_share: the mutual-majority share that links instances across views.
     ground_truth_level: level of the ground-truth hierarchy the ``merge.json`` quality figures use.
     """
@@ -63,7 +91,12 @@ class MergeParams:
     preset: Literal["paper", "official"] = "paper"
     threshold: float | None = None
     min_visibility: float | None = None
-    common_mask_only: bool = True
+    candidates: Literal["coarser_mask", "all_pairs"] = "coarser_mask"
+    uncovered: Literal["exclude", "label"] | None = None
+    min_gaussians: int | None = None
+    min_view_share: float | None = None
+    min_views: int | None = None
+    min_gaussian_views: int | None = None
     association_share: float = 0.5
     ground_truth_level: Literal["part", "object", "group"] = "object"
     preview_views: int = 4
@@ -76,6 +109,17 @@ class MergeParams:
             raise ValueError(f"threshold must be in [0, 1], got {self.threshold}")
         if not 0.0 < self.association_share < 1.0:
             raise ValueError(f"association_share must be in (0, 1), got {self.association_share}")
+        if not 0.0 <= self.min_view_share < 1.0:
+            raise ValueError(f"min_view_share must be in [0, 1), got {self.min_view_share}")
+        for key in ("min_gaussians", "min_views", "min_gaussian_views"):
+            if getattr(self, key) < 0:
+                raise ValueError(f"{key} must be >= 0, got {getattr(self, key)}")
+
+    @property
+    def rule(self) -> "VoteRule":
+        return VoteRule(uncovered=self.uncovered, min_gaussians=self.min_gaussians,
+                        min_view_share=self.min_view_share, min_views=self.min_views,
+                        min_gaussian_views=self.min_gaussian_views)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -108,42 +152,164 @@ def cooccurrence(source: np.ndarray, labels: np.ndarray, visible: np.ndarray, nu
     return hist
 
 
+@dataclass(frozen=True)
+class VoteRule:
+    """Which Gaussians and views vote on a pair of patches (see :class:`MergeParams` for the keys).
+
+    uncovered: ``exclude``: a Gaussian whose argmax in view v is label 0 (no mask covers its pixels)
+        has no vote in v, neither agreement nor disagreement (the released code's
+        ``valid_weight_mask``); ``label``: label 0 is a label like any other, so two Gaussians that
+        are both uncovered in v agree (this project's behaviour before 2026-11-27).
+    min_gaussians: a patch takes part only when more than this many Gaussians trace to it.
+    min_view_share: view v votes on (P_a, P_b) only when more than this share of G_a and of G_b
+        have a vote there.
+    min_views: a pair with fewer voting views gets similarity 0 (unsupported).
+    min_gaussian_views: a Gaussian votes only when it has a vote in at least this many of the
+        pair's voting views (0: every Gaussian).
+    """
+
+    uncovered: Literal["exclude", "label"] = "exclude"
+    min_gaussians: int = 0
+    min_view_share: float = 0.0
+    min_views: int = 1
+    min_gaussian_views: int = 0
+
+    @property
+    def first_label(self) -> int:
+        """The smallest label that votes (1 when label 0 is excluded)."""
+        return 1 if self.uncovered == "exclude" else 0
+
+
+# Rule of the plain form (the paper's formula over every co-visible view, label 0 a label).
+PLAIN = VoteRule(uncovered="label")
+
+# Largest [pairs, views, labels] block of the factored vote computed at once (float64 entries).
+VOTE_BLOCK = 1 << 22
+
+
+def vote(hist: np.ndarray, pairs: np.ndarray, counts: np.ndarray | None = None,
+         rule: VoteRule = PLAIN) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Similarities of patch ``pairs`` [K, 2] from one source view's histograms (factored form).
+
+    Args:
+        hist: [A, L, T] int label histograms of each source patch's Gaussians per view
+            (:func:`source_histograms`; the source view's slice is zero).
+        pairs: [K, 2] source patch ids.
+        counts: [A] number of Gaussians of each source patch (|G_a|); needed when ``rule`` asks for
+            a minimum number of Gaussians or a minimum view share.
+        rule: which Gaussians and views vote. ``rule.min_gaussian_views`` needs each Gaussian's
+            labels: :func:`merge_view` handles it with :func:`_vote_per_gaussian`; here it must be 0.
+    Returns:
+        sim [K] float64 (0 where unsupported or Omega is empty), |Omega| [K] int64 (0 where
+        unsupported) and supported [K] bool.
+    """
+    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+    k = len(pairs)
+    if rule.min_gaussian_views > 0:
+        raise ValueError("vote: min_gaussian_views needs each Gaussian's labels (merge_view).")
+    if k == 0:
+        return np.zeros(0), np.zeros(0, np.int64), np.zeros(0, bool)
+    h = hist[:, :, rule.first_label:]
+    n = h.sum(axis=2, dtype=np.int64)  # [A, L] Gaussians with a vote in each view
+    if counts is None:
+        if rule.min_gaussians > 0 or rule.min_view_share > 0:
+            raise ValueError("vote: the rule's minimum support needs the patches' Gaussian counts.")
+        counts = np.full(len(hist), 1, np.int64)
+    counts = np.asarray(counts, np.int64)
+    share = n / np.maximum(counts, 1)[:, None]  # [A, L]
+    sims, omega = np.zeros(k), np.zeros(k, np.int64)
+    supported = (counts[pairs[:, 0]] > rule.min_gaussians) & (counts[pairs[:, 1]] > rule.min_gaussians)
+    step = max(1, VOTE_BLOCK // max(1, h.shape[1] * h.shape[2]))
+    for lo in range(0, k, step):
+        a, b = pairs[lo:lo + step, 0], pairs[lo:lo + step, 1]
+        views = (share[a] > rule.min_view_share) & (share[b] > rule.min_view_share)  # [k, L]
+        ok = supported[lo:lo + step] & (views.sum(axis=1) >= rule.min_views)
+        supported[lo:lo + step] = ok
+        ha, hb = h[a].astype(np.float64), h[b].astype(np.float64)
+        same = ((ha * hb).sum(axis=2) * views).sum(axis=1)
+        total = (n[a].astype(np.float64) * n[b] * views).sum(axis=1)
+        total = np.where(ok, total, 0.0)
+        sims[lo:lo + step] = np.where(total > 0, same / np.maximum(total, 1), 0.0)
+        omega[lo:lo + step] = total.astype(np.int64)
+    return sims, omega, supported
+
+
 def pair_similarity(hist: np.ndarray, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Similarities of patch ``pairs`` [K, 2] from one source view's histograms [A, L, T].
+    """The plain similarity (every co-visible view, label 0 a label, no minimum support) of patch
+    ``pairs`` [K, 2] from one source view's histograms [A, L, T].
 
     Returns:
         sim [K] float64 (0 where Omega is empty) and |Omega| [K] int64.
     """
-    if len(pairs) == 0:
-        return np.zeros(0), np.zeros(0, np.int64)
-    h = hist.astype(np.float64)
-    ha, hb = h[pairs[:, 0]], h[pairs[:, 1]]
-    same = (ha * hb).sum(axis=(1, 2))
-    omega = (ha.sum(axis=2) * hb.sum(axis=2)).sum(axis=1)
-    sim = np.where(omega > 0, same / np.maximum(omega, 1), 0.0)
-    return sim, omega.astype(np.int64)
+    sims, omega, _ = vote(hist, pairs)
+    return sims, omega
+
+
+def _vote_per_gaussian(labels: np.ndarray, rows: Sequence[np.ndarray], pairs: np.ndarray, views: np.ndarray,
+                       ok: np.ndarray, rule: VoteRule, num_labels: int) -> tuple[np.ndarray, np.ndarray]:
+    """The vote with a minimum number of voting views per Gaussian (``rule.min_gaussian_views``).
+
+    Args:
+        labels: [n, L] int32 labels of the source view's visible Gaussians, -1 where they have no
+            vote (unseen, uncovered under ``exclude``, or the source view itself).
+        rows: per source patch, the row indices into ``labels`` of its Gaussians.
+        pairs: [K, 2]; views: [K, L] bool voting views of each pair; ok: [K] bool supported pairs.
+    Returns:
+        sim [K] float64 and |Omega| [K] int64 (0 where not ``ok``).
+    """
+    sims, omega = np.zeros(len(pairs)), np.zeros(len(pairs), np.int64)
+    for k, ((a, b), f, good) in enumerate(zip(pairs, views, ok)):
+        if not good:
+            continue
+        cols = np.nonzero(f)[0]
+        hists = []
+        for p in (a, b):
+            lab = labels[rows[p]][:, cols]  # [|G_p|, |F|]
+            has = lab >= 0
+            lab = lab[has.sum(axis=1) >= rule.min_gaussian_views]
+            has = lab >= 0
+            index = (np.arange(len(cols))[None, :] * num_labels + lab)[has]
+            hists.append(np.bincount(index, minlength=len(cols) * num_labels).reshape(len(cols), num_labels))
+        ha, hb = hists
+        same = int((ha * hb).sum())
+        total = int((ha.sum(axis=1) * hb.sum(axis=1)).sum())
+        sims[k] = same / total if total else 0.0
+        omega[k] = total
+    return sims, omega
 
 
 def pair_similarity_bruteforce(labels: np.ndarray, visible: np.ndarray, source_view: int, a: int,
-                               b: int) -> tuple[float, int]:
-    """The paper's definition as a loop over Gaussian pairs and views (the twin of the factored form).
+                               b: int, rule: VoteRule = PLAIN) -> tuple[float, int]:
+    """The definition as a literal loop over Gaussian pairs and views (the twin of the factored form).
 
     Args:
         labels: [N, L] argmax labels; visible: [N, L] bool; source_view: v0; a, b: patch ids in v0.
+        rule: which Gaussians and views vote (:class:`VoteRule`).
     Returns:
-        (sim, |Omega|).
+        (sim, |Omega|); (0.0, 0) for a pair without the rule's minimum support.
     """
     ga = [i for i in range(labels.shape[0]) if visible[i, source_view] and labels[i, source_view] == a]
     gb = [i for i in range(labels.shape[0]) if visible[i, source_view] and labels[i, source_view] == b]
+    if len(ga) <= rule.min_gaussians or len(gb) <= rule.min_gaussians:
+        return 0.0, 0
+
+    def votes(i, v):
+        return v != source_view and visible[i, v] and labels[i, v] >= rule.first_label
+
+    views = [v for v in range(labels.shape[1])
+             if ga and gb and sum(votes(i, v) for i in ga) / len(ga) > rule.min_view_share
+             and sum(votes(j, v) for j in gb) / len(gb) > rule.min_view_share]
+    if len(views) < rule.min_views:
+        return 0.0, 0
+    ga = [i for i in ga if sum(votes(i, v) for v in views) >= rule.min_gaussian_views]
+    gb = [j for j in gb if sum(votes(j, v) for v in views) >= rule.min_gaussian_views]
     same = total = 0
-    for v in range(labels.shape[1]):
-        if v == source_view:
-            continue
+    for v in views:
         for i in ga:
-            if not visible[i, v] or labels[i, v] < 0:
+            if not votes(i, v):
                 continue
             for j in gb:
-                if not visible[j, v] or labels[j, v] < 0:
+                if not votes(j, v):
                     continue
                 total += 1
                 same += int(labels[i, v] == labels[j, v])
@@ -235,24 +401,60 @@ class ViewMerge:
     sims: np.ndarray  # [K]
     omega: np.ndarray  # [K]
     merged: np.ndarray  # [K] bool
+    supported: np.ndarray | None = None  # [K] bool: the pair had the rule's minimum support
 
     @property
     def num_instances(self) -> int:
         return int(self.lut.max(initial=0))
 
 
+def candidate_pairs(hierarchy, candidates: str) -> np.ndarray:
+    """[K, 2] patch pairs (a < b) of one view compared by the merge: ``coarser_mask``, the pairs
+    inside a common coarser mask (:meth:`PatchHierarchy.candidate_pairs`); ``all_pairs``, all of them."""
+    if candidates == "coarser_mask":
+        return hierarchy.candidate_pairs()
+    if candidates == "all_pairs":
+        a, b = np.triu_indices(hierarchy.num_patches + 1, k=1)
+        keep = a > 0
+        return np.stack([a[keep], b[keep]], axis=1).astype(np.int64)
+    raise ValueError(f"candidates must be coarser_mask or all_pairs, got {candidates!r}")
+
+
 def merge_view(stats: GITStats, view: int, num_patches: int, pairs: np.ndarray, threshold: float,
-               min_visibility: float, hist: np.ndarray | None = None) -> ViewMerge:
+               min_visibility: float, hist: np.ndarray | None = None, rule: VoteRule = VoteRule(),
+               visible: np.ndarray | None = None) -> ViewMerge:
     """Merge the patches of view ``view`` (ids 1..num_patches; 0 is uncovered and never merged).
 
-    ``hist``: the view's [A, L, T] source histograms when already computed (:func:`all_source_histograms`).
+    ``hist``: the view's [A, L, T] source histograms when already computed (:func:`all_source_histograms`);
+    ``rule``: which Gaussians and views vote (default: the paper preset's); ``visible``: [N, L]
+    ``stats.visible(min_visibility)`` when already computed.
     """
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+    if visible is None:
+        visible = stats.visible(min_visibility)
+    num_labels = int(stats.num_labels.max(initial=1))
+    num_source = max(num_patches + 1, int(stats.num_labels[view]))
     if hist is None:
-        num_labels = int(stats.num_labels.max(initial=1))
-        hist = source_histograms(stats.label, stats.visible(min_visibility), view,
-                                 max(num_patches + 1, int(stats.num_labels[view])), num_labels)
-    sims, omega = pair_similarity(hist, pairs)
+        hist = source_histograms(stats.label, visible, view, num_source, num_labels)
+    source = visible[:, view] & (stats.label[:, view] >= 0)
+    counts = np.bincount(stats.label[source, view], minlength=len(hist)).astype(np.int64)
+    if rule.min_gaussian_views > 0:
+        sims, omega, supported = vote(hist, pairs, counts, VoteRule(rule.uncovered, rule.min_gaussians,
+                                                                     rule.min_view_share, rule.min_views))
+        if len(pairs):
+            rows_all = np.nonzero(source)[0]
+            lab = stats.label[rows_all]
+            masked = np.where(visible[rows_all] & (lab >= rule.first_label), lab, -1).astype(np.int32)
+            masked[:, view] = -1
+            by_label = np.argsort(lab[:, view], kind="stable")
+            bounds = np.searchsorted(lab[by_label, view], np.arange(len(hist) + 1))
+            by_patch = [by_label[bounds[p]:bounds[p + 1]] for p in range(len(hist))]
+            n = hist[:, :, rule.first_label:].sum(axis=2, dtype=np.int64)
+            share = n / np.maximum(counts, 1)[:, None]
+            views = (share[pairs[:, 0]] > rule.min_view_share) & (share[pairs[:, 1]] > rule.min_view_share)
+            sims, omega = _vote_per_gaussian(masked, by_patch, pairs, views, supported, rule, num_labels)
+    else:
+        sims, omega, supported = vote(hist, pairs, counts, rule)
     merged = sims > threshold
     uf = UnionFind(num_patches + 1)
     for (a, b), m in zip(pairs, merged):
@@ -263,7 +465,7 @@ def merge_view(stats: GITStats, view: int, num_patches: int, pairs: np.ndarray, 
     order = {r: k + 1 for k, r in enumerate(sorted(set(roots[1:].tolist())))}
     for p in range(1, num_patches + 1):
         lut[p] = order[roots[p]]
-    return ViewMerge(stats.frames[view], lut, pairs, sims, omega, merged)
+    return ViewMerge(stats.frames[view], lut, pairs, sims, omega, merged, supported)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -413,6 +615,120 @@ def segmentation_quality(truths: Sequence[np.ndarray], preds: Sequence[np.ndarra
     )
 
 
+def patch_owners(truth: np.ndarray, patch_map: np.ndarray, num_patches: int) -> np.ndarray:
+    """[P + 1] int64: the ground-truth object holding most of each patch's pixels (unlabelled pixels,
+    id 0, count as an object of their own; ties go to the smaller id); 0 for a patch whose majority
+    is unlabelled or that has no pixels. Entry 0 (uncovered pixels) is 0.
+
+    Args:
+        truth: [H, W] ground-truth ids (0 unlabelled); patch_map: [H, W] patch ids (0 uncovered).
+    """
+    p = patch_map.astype(np.int64).ravel()
+    _, t = np.unique(truth.astype(np.int64).ravel(), return_inverse=True)
+    ids = np.unique(truth)
+    table = np.zeros((num_patches + 1, len(ids)), np.int64)
+    np.add.at(table, (np.clip(p, 0, num_patches), t.ravel()), 1)
+    owner = ids[table.argmax(axis=1)].astype(np.int64)
+    owner[table.sum(axis=1) == 0] = 0
+    owner[0] = 0
+    return owner
+
+
+@dataclass
+class PairQuality:
+    """Per-pair merge decisions against the ground truth, summed over views (docs/tracing.md).
+
+    A patch *belongs* to the ground-truth object holding most of its pixels (:func:`patch_owners`);
+    patches whose majority is unlabelled are left out, with every pair they are in. A pair *should
+    merge* when both patches belong to the same object.
+    """
+
+    patches: int = 0  # patches counted (majority on a labelled object)
+    excluded_patches: int = 0  # patches left out (majority unlabelled, or no pixels)
+    candidates: int = 0  # candidate pairs of counted patches
+    candidates_should_merge: int = 0
+    merged: int = 0  # candidate pairs whose similarity exceeded the threshold
+    merged_should_merge: int = 0
+    unsupported: int = 0  # candidate pairs without the rule's minimum support (never merged)
+    should_merge: int = 0  # all pairs of counted patches within a view that should merge
+    out_of_reach: int = 0  # ... that were not candidates
+    joined: int = 0  # pairs of counted patches that ended in one instance (transitively too)
+    joined_should_merge: int = 0
+
+    @staticmethod
+    def _ratio(a: int, b: int) -> float | None:
+        return a / b if b else None
+
+    @property
+    def precision(self) -> float | None:
+        """Merged candidate pairs that should merge / merged candidate pairs."""
+        return self._ratio(self.merged_should_merge, self.merged)
+
+    @property
+    def recall(self) -> float | None:
+        """Should-merge candidate pairs that were merged / should-merge candidate pairs."""
+        return self._ratio(self.merged_should_merge, self.candidates_should_merge)
+
+    @property
+    def out_of_reach_share(self) -> float | None:
+        """Should-merge pairs that were never candidates / all should-merge pairs."""
+        return self._ratio(self.out_of_reach, self.should_merge)
+
+    @property
+    def joined_precision(self) -> float | None:
+        return self._ratio(self.joined_should_merge, self.joined)
+
+    @property
+    def joined_recall(self) -> float | None:
+        """Should-merge pairs (candidates or not) that ended in one instance / all should-merge pairs."""
+        return self._ratio(self.joined_should_merge, self.should_merge)
+
+    def add(self, other: "PairQuality") -> None:
+        for key in self.__dataclass_fields__:
+            setattr(self, key, getattr(self, key) + getattr(other, key))
+
+    def to_dict(self) -> dict:
+        out = {key: int(getattr(self, key)) for key in self.__dataclass_fields__}
+        for key in ("precision", "recall", "out_of_reach_share", "joined_precision", "joined_recall"):
+            out[key] = getattr(self, key)
+        return out
+
+
+def view_pair_quality(truth: np.ndarray, patch_map: np.ndarray, merge: ViewMerge) -> tuple[PairQuality, list]:
+    """:class:`PairQuality` of one view's merge, and the view's out-of-reach pairs [[a, b], ...].
+
+    Args:
+        truth: [H, W] ground-truth ids (0 unlabelled); patch_map: [H, W] patch ids; merge: the view's merge.
+    """
+    num_patches = len(merge.lut) - 1
+    owner = patch_owners(truth, patch_map, num_patches)
+    counted = owner > 0
+    q = PairQuality(patches=int(counted[1:].sum()), excluded_patches=int((~counted[1:]).sum()))
+    ids = np.nonzero(counted)[0]
+    a, b = np.triu_indices(len(ids), k=1)
+    a, b = ids[a], ids[b]
+    should = owner[a] == owner[b]
+    joined = merge.lut[a] == merge.lut[b]
+    q.should_merge = int(should.sum())
+    q.joined = int(joined.sum())
+    q.joined_should_merge = int((should & joined).sum())
+    pairs = merge.pairs.reshape(-1, 2)
+    keep = counted[pairs[:, 0]] & counted[pairs[:, 1]]
+    pairs, merged = pairs[keep], merge.merged[keep]
+    supported = merge.supported[keep] if merge.supported is not None else np.ones(len(pairs), bool)
+    cand_should = owner[pairs[:, 0]] == owner[pairs[:, 1]]
+    q.candidates = int(len(pairs))
+    q.candidates_should_merge = int(cand_should.sum())
+    q.merged = int(merged.sum())
+    q.merged_should_merge = int((merged & cand_should).sum())
+    q.unsupported = int((~supported).sum())
+    width = num_patches + 1
+    candidate_keys = set((pairs[:, 0] * width + pairs[:, 1]).tolist())
+    reach = [[int(x), int(y)] for x, y in zip(a[should], b[should]) if int(x) * width + int(y) not in candidate_keys]
+    q.out_of_reach = len(reach)
+    return q, reach
+
+
 # ----------------------------------------------------------------------------------------------
 # The `merge` step
 # ----------------------------------------------------------------------------------------------
@@ -424,16 +740,13 @@ def merge_all(stats: GITStats, hierarchies: Sequence, params: MergeParams) -> tu
     merges = []
     num_labels = int(stats.num_labels.max(initial=1))
     num_source = max(num_labels, max((h.num_patches + 1 for h in hierarchies), default=1))
-    every = all_source_histograms(stats.label, stats.visible(params.min_visibility), num_source, num_labels)
+    visible = stats.visible(params.min_visibility)
+    every = all_source_histograms(stats.label, visible, num_source, num_labels)
+    rule = params.rule
     for v, (hierarchy, hist) in enumerate(zip(hierarchies, every)):
-        if params.common_mask_only:
-            pairs = hierarchy.candidate_pairs()
-        else:
-            a, b = np.triu_indices(hierarchy.num_patches + 1, k=1)
-            keep = a > 0
-            pairs = np.stack([a[keep], b[keep]], axis=1)
+        pairs = candidate_pairs(hierarchy, params.candidates)
         merges.append(merge_view(stats, v, hierarchy.num_patches, pairs, params.threshold, params.min_visibility,
-                                 hist=hist))
+                                 hist=hist, rule=rule, visible=visible))
     luts = associate(stats, merges, params.min_visibility, params.association_share)
     return merges, luts
 
@@ -476,6 +789,7 @@ def run_merge(scene, git_dir: Path, patches_dir: Path, out_dir: Path, params: di
         views.append({
             "frame": m.frame, "patches": int(len(m.lut) - 1), "instances": m.num_instances,
             "pairs_considered": int(len(m.pairs)),
+            "unsupported": int((~m.supported).sum()) if m.supported is not None else 0,
             "merged": [[int(a), int(b), round(float(s), 4)] for (a, b), s, ok in zip(m.pairs, m.sims, m.merged) if ok],
             "similarities": [[int(a), int(b), round(float(s), 4), int(o)] for (a, b), s, o in zip(m.pairs, m.sims, m.omega)],
         })
@@ -495,14 +809,29 @@ def run_merge(scene, git_dir: Path, patches_dir: Path, out_dir: Path, params: di
             truths.append(table[np.clip(leaf, 0, len(table) - 1)])
         before = segmentation_quality(truths, maps)
         after = segmentation_quality(truths, outputs)
-        report["ground_truth"] = {"level": p.ground_truth_level, "before": before.__dict__, "after": after.__dict__}
+        pair_total = PairQuality()
+        for entry, truth, patch_map, m in zip(views, truths, maps, merges):
+            q, reach = view_pair_quality(truth, patch_map, m)
+            pair_total.add(q)
+            entry["pairs_vs_truth"] = {**{key: int(getattr(q, key)) for key in q.__dataclass_fields__},
+                                       "out_of_reach_pairs": reach}
+        report["ground_truth"] = {"level": p.ground_truth_level, "before": before.__dict__, "after": after.__dict__,
+                                  "pairs": pair_total.to_dict()}
         log.info("merge vs ground truth: ARI %.3f -> %.3f, covered %.3f -> %.3f, straddling %.3f -> %.3f",
                  before.ari, after.ari, before.covered, after.covered, before.straddling, after.straddling)
+        log.info("merge pairs vs ground truth: %d merged of %d candidates, %d of %d should-merge pairs were "
+                 "candidates (%d out of reach), precision %s, recall %s", pair_total.merged, pair_total.candidates,
+                 pair_total.candidates_should_merge, pair_total.should_merge, pair_total.out_of_reach,
+                 _fmt(pair_total.precision), _fmt(pair_total.recall))
         if p.preview_views > 0:
             write_merge_preview(scene, stats.frames, maps, outputs, truths, out_dir / "preview.png", p.preview_views)
     report["per_view"] = views
     write_json(out_dir / "merge.json", report)
     return report
+
+
+def _fmt(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.3f}"
 
 
 def count_ids(label_map: np.ndarray) -> int:
