@@ -372,10 +372,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--params", help=params_help)
     p.set_defaults(func=_cmd_scene)
 
-    p = sub.add_parser("masks", help="2D instance masks per view (simulated | files | sam)")
+    p = sub.add_parser("masks", help="2D instance masks per view (simulated | files | sam | graph)")
     p.add_argument("--scene", required=True)
     p.add_argument("--out", required=True)
-    p.add_argument("--source", default="simulated", choices=["simulated", "files", "sam"])
+    p.add_argument("--source", default="simulated", choices=["simulated", "files", "sam", "graph"])
     p.add_argument("--params", help=params_help)
     p.set_defaults(func=_cmd_masks)
 
