@@ -222,3 +222,27 @@ class TestPromptSegmenter:
             seg.segment("nope", np.array([[5.0, 5.0]]), None)
         with pytest.raises(ConfigError):
             GraphPromptSegmenter(scene, {"refine": "crf"})
+
+
+def test_schema_matches_the_dataclasses():
+    """The config schema's masks.graph and lift.graph sections name the dataclasses' fields and defaults."""
+    import dataclasses
+
+    import yaml
+
+    from trace3d.masks.graph import GraphPromptParams
+    from trace3d.lifting.self_prompt import SelfPromptParams
+
+    schema = yaml.safe_load((Path(__file__).resolve().parent.parent / "workflow/schemas/config.schema.yaml").read_text())
+    for section, cls in ((schema["$defs"]["masks"]["properties"]["graph"], GraphParams),
+                         (schema["$defs"]["lift"]["properties"]["graph"], GraphPromptParams)):
+        fields = {f.name: getattr(cls(), f.name) for f in dataclasses.fields(cls)}
+        assert set(section["properties"]) == set(fields)
+        for name, prop in section["properties"].items():
+            if "default" in prop:
+                assert prop["default"] == fields[name], name
+    assert "graph" in schema["$defs"]["masks"]["properties"]["source"]["enum"]
+    assert set(schema["$defs"]["lift"]["properties"]["prompt_source"]["enum"]) == {"simulated", "sam", "graph"}
+    assert SelfPromptParams(prompt_source="graph", graph={"refine": "grabcut"}).graph == {"refine": "grabcut"}
+    with pytest.raises(ConfigError, match="scale"):
+        SelfPromptParams(prompt_source="graph", graph={"graph": {"scale": [1, 2, 3]}})
