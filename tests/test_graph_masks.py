@@ -140,7 +140,7 @@ def _prompt_scene(root: Path) -> tuple[Scene, np.ndarray, np.ndarray]:
     Returns the scene, the red box's pixels without the blue square, and the blue square's pixels."""
     rng = np.random.default_rng(1)
     H, W = 48, 64
-    image = np.clip(128 + rng.normal(0, 6, size=(H, W, 3)), 0, 255)
+    image = np.clip(128 + rng.normal(0, 3, size=(H, W, 3)), 0, 255)
     red = np.zeros((H, W), bool)
     red[8:40, 10:50] = True
     blue = np.zeros((H, W), bool)
@@ -171,7 +171,9 @@ class TestPromptSegmenter:
     @pytest.mark.parametrize("refine", ["none", "grabcut"])
     def test_known_answer(self, tmp_path, refine):
         scene, red, blue = _prompt_scene(tmp_path)
-        seg = GraphPromptSegmenter(scene, {"refine": refine})
+        # the mask source's hierarchy: at 64x48 the prompt source's finer default levels (minimum
+        # region 4 px) glue a few noisy background pixels to the box
+        seg = GraphPromptSegmenter(scene, {"graph": {}, "refine": refine})
         positive = np.array([[15.5, 12.5], [45.5, 35.5]])  # (x, y) on the red box
         negative = np.array([[35.5, 23.5]])  # on the blue square
         mask = seg.segment("view", positive, None, negatives=negative)
@@ -185,7 +187,7 @@ class TestPromptSegmenter:
 
     def test_like_picks_the_closest_level(self, tmp_path):
         scene, red, blue = _prompt_scene(tmp_path)
-        seg = GraphPromptSegmenter(scene)
+        seg = GraphPromptSegmenter(scene, {"select": "points"})
         # the finest region under the point is the square; asked for something like the whole box,
         # the answer grows only if some level holds the square inside a larger region
         image, hierarchy = seg.view("view")
@@ -212,6 +214,31 @@ class TestPromptSegmenter:
         whole = np.ones_like(red)
         assert (seg.segment("view", on_red, None, like=whole) == whole).all()
         assert (seg.segment("view", on_red, None, like=whole, negatives=on_bg) == box).all()
+
+    def test_fit_takes_the_regions_inside_the_rendered_region(self, tmp_path):
+        scene, red, blue = _prompt_scene(tmp_path)
+        seg = GraphPromptSegmenter(scene, {"select": "fit"})
+        image, _ = seg.view("view")
+        # level 0: background 0, box split into left 1 / right 2 halves; level 1: the box; level 2: one region
+        fine = np.zeros(red.shape, np.int32)
+        fine[8:40, 10:30], fine[8:40, 30:50] = 1, 2
+        hierarchy = np.stack([fine, np.minimum(fine, 1), np.zeros_like(fine)])
+        seg._cache["view"] = (image, hierarchy)
+        box = fine > 0
+        # a rendered region: the box shifted right by 2 px; one prompt on the left half
+        rendered = np.roll(box, 2, axis=1)
+        on_left = np.array([[15.5, 20.5]])
+        assert (seg.segment("view", on_left, None, like=rendered) == box).all()
+        # points only: the left half at level 0 scores below the box at level 1, so also the box
+        points = GraphPromptSegmenter(scene, {"select": "points"})
+        points._cache["view"] = (image, hierarchy)
+        assert (points.segment("view", on_left, None, like=rendered) == box).all()
+        # a negative on the right half: fit keeps the left half only
+        assert (seg.segment("view", on_left, None, like=rendered, negatives=np.array([[40.5, 20.5]])) ==
+                (fine == 1)).all()
+        # rendered region = the right half only, prompt on its deepest pixel: fit gives the right half
+        right = fine == 2
+        assert (seg.segment("view", np.array([[40.5, 20.5]]), None, like=right) == right).all()
 
     def test_refuses_bad_prompts(self, tmp_path):
         scene, _, _ = _prompt_scene(tmp_path)
@@ -246,3 +273,19 @@ def test_schema_matches_the_dataclasses():
     assert SelfPromptParams(prompt_source="graph", graph={"refine": "grabcut"}).graph == {"refine": "grabcut"}
     with pytest.raises(ConfigError, match="scale"):
         SelfPromptParams(prompt_source="graph", graph={"graph": {"scale": [1, 2, 3]}})
+
+
+def test_prompt_bench_scores_the_oracle_and_the_graph(rooms, tmp_path):
+    from trace3d.cli import main
+    from trace3d.masks.prompt_bench import run_bench
+
+    room, photos = rooms
+    result = run_bench(room.root, views=2, min_pixels=30, sources={
+        "oracle": ("simulated", {"inconsistency": 0.0}), "graph": ("graph", {})})
+    assert result["object_views"] > 0
+    # the oracle at inconsistency 0 answers with the ground-truth object itself
+    assert result["iou"]["oracle"]["reference"]["mean"] == 1.0
+    assert 0.0 < result["iou"]["graph"]["reference"]["mean"] < 1.0
+    assert 0.0 < result["rendered_cue_iou"]["mean"] < 1.0
+    # a scene without ground truth cannot be scored: one sentence, exit 2
+    assert main(["bench", "prompts", "--room", str(photos.root), "--quick"]) == 2

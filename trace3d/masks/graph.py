@@ -258,12 +258,23 @@ def iter_graph_masks(scene: Scene, params: GraphParams) -> Iterator[tuple[str, n
 # ----------------------------------------------------------------------------------------------
 
 
+# the prompt source's default hierarchy: finer than the mask source's (measured best, docs/masks.md)
+PROMPT_HIERARCHY = {"scales": [30.0, 100.0, 300.0, 1000.0, 2500.0], "min_size": 0.001, "min_area": 0.001}
+
+
 @dataclasses.dataclass
 class GraphPromptParams:
     """Parameters of the ``graph`` prompt source (lift params ``graph``).
 
     Attributes:
-        graph: :class:`GraphParams` overrides (the hierarchy the candidates come from).
+        graph: :class:`GraphParams` overrides (the hierarchy the candidates come from); default
+            ``PROMPT_HIERARCHY``, five levels finer than the mask source's (``{}``: the mask
+            source's defaults).
+        select: how a level's candidate is built when the caller passes ``like``: ``points`` (the
+            regions under the positive points, as SAM answers clicks) or ``fit`` (those regions and
+            every region with at least ``fit_share`` of its pixels inside ``like``: the level's best
+            fit to the rendered region). Regions holding a negative point are left out either way.
+        fit_share: see ``select``.
         refine: ``none`` (the chosen graph candidate) or ``grabcut`` (OpenCV's GrabCut initialised
             with the candidate as probable foreground, the positive points as sure foreground, the
             negative points and everything farther than ``grabcut_margin`` from the candidate as sure
@@ -272,12 +283,18 @@ class GraphPromptParams:
         grabcut_margin: fraction of the image diagonal around the candidate left to GrabCut.
     """
 
-    graph: dict = dataclasses.field(default_factory=dict)
+    graph: dict = dataclasses.field(default_factory=lambda: dict(PROMPT_HIERARCHY))
+    select: str = "fit"
+    fit_share: float = 0.5
     refine: str = "none"
     grabcut_iterations: int = 3
     grabcut_margin: float = 0.05
 
     def __post_init__(self) -> None:
+        if self.select not in ("points", "fit"):
+            raise ValueError(f"select must be 'points' or 'fit', got {self.select!r}")
+        if not 0.0 < self.fit_share <= 1.0:
+            raise ValueError(f"fit_share must be in (0, 1], got {self.fit_share}")
         if self.refine not in ("none", "grabcut"):
             raise ValueError(f"refine must be 'none' or 'grabcut', got {self.refine!r}")
         if self.grabcut_iterations < 1:
@@ -299,19 +316,27 @@ def _pixels(points: np.ndarray | None, H: int, W: int, what: str, frame: str) ->
     return np.stack([rows, cols], axis=1)
 
 
-def prompt_candidates(hierarchy: np.ndarray, positive: np.ndarray, negative: np.ndarray) -> list[np.ndarray]:
+def prompt_candidates(hierarchy: np.ndarray, positive: np.ndarray, negative: np.ndarray,
+                      fit: np.ndarray | None = None, fit_share: float = 0.5) -> list[np.ndarray]:
     """Per level, the union of the regions under the positive points that hold no negative point.
 
     Args:
         hierarchy: [K, H, W] nested label maps.
         positive: [P, 2] int (row, col), P >= 1; negative: [Q, 2] int (row, col).
+        fit: [H, W] bool, optional: also take every region with at least ``fit_share`` of its
+            pixels inside ``fit``.
     Returns:
         K masks [H, W] bool (finest first); a level where every positive region holds a negative
-        gives the positive pixels alone.
+        (and no region fits) gives the positive pixels alone.
     """
     out = []
     for labels in hierarchy:
         pos = set(labels[positive[:, 0], positive[:, 1]].tolist())
+        if fit is not None:
+            n = int(labels.max()) + 1
+            inside = np.bincount(labels[fit], minlength=n)
+            area = np.bincount(labels.ravel(), minlength=n)
+            pos |= set(np.nonzero(inside >= fit_share * area)[0].tolist())
         neg = set(labels[negative[:, 0], negative[:, 1]].tolist()) if len(negative) else set()
         keep = sorted(pos - neg)
         mask = np.isin(labels, keep) if keep else np.zeros(labels.shape, bool)
@@ -402,9 +427,13 @@ class GraphPromptSegmenter:
         if len(positive) == 0:
             raise Trace3DError(f"graph prompt segmenter: no positive point prompts for frame {frame!r}.")
         negative = _pixels(negatives, H, W, "negative", frame)
-        cands = prompt_candidates(hierarchy, positive, negative)
         if like is not None:
             like = np.asarray(like, bool)
+            if like.shape != (H, W):
+                raise Trace3DError(f"frame {frame!r}: the `like` mask has shape {like.shape}, not {(H, W)}.")
+        fit = like if (like is not None and self.params.select == "fit") else None
+        cands = prompt_candidates(hierarchy, positive, negative, fit, self.params.fit_share)
+        if like is not None:
             scores = [_iou(c, like) for c in cands]
             mask = cands[int(np.argmax(scores))]  # first maximum: the finer level on ties
         else:
