@@ -73,6 +73,25 @@ class TestNesting:
             assert len(np.unique(h[k])) < len(np.unique(h[k - 1]))  # coarser
 
 
+def test_dissolve_thin_strips_but_not_small_blobs():
+    from trace3d.masks.graph import dissolve_thin
+
+    labels = np.zeros((12, 30), np.int64)
+    labels[:, 15:] = 1
+    labels[:, 14] = 2  # a 1-px strip of 12 px between the halves: below 2 * 3^2 = 18 px, kept
+    labels[2:4, 2:4] = 3  # a 2x2 blob: small, kept
+    np.testing.assert_array_equal(dissolve_thin(labels, 1), labels)
+    long = np.zeros((30, 30), np.int64)
+    long[:, 15:] = 1
+    long[:, 14] = 2  # 30 px: thin, split between the neighbours (left: column 13 is nearest)
+    long[2:4, 2:4] = 3
+    out = dissolve_thin(long, 1)
+    assert 2 not in out and (out == 3).sum() == 4
+    np.testing.assert_array_equal(out[:, 15:], 1)
+    np.testing.assert_array_equal(out[:, :14][long[:, :14] == 0], 0)
+    np.testing.assert_array_equal(dissolve_thin(long, 0), long)
+
+
 class TestSource:
     def test_runs_without_ground_truth_and_nests(self, rooms, tmp_path):
         from trace3d.cli import main

@@ -66,8 +66,8 @@ class GraphParams:
         min_area: regions covering less than this fraction of the image give no mask.
         max_area: regions covering more than this fraction of the image give no mask.
         thin_pixels: half-width (pixels at ``reference_pixels``, scaled by ``sqrt(f)`` and rounded
-            up) under which a raw region counts as thin: one with no pixel whose whole
-            ``(2 r + 1)``-square neighbourhood lies in it. Thin regions (chiefly the strips of
+            up) under which a raw region counts as thin: one of at least ``2 (2 r + 1)^2`` pixels
+            with no pixel whose whole ``(2 r + 1)``-square neighbourhood lies in it. Thin regions (chiefly the strips of
             blurred colour that Felzenszwalb leaves along strong edges) are dissolved, pixel by
             pixel, into the nearest region that is not thin. 0: keep them.
         reference_pixels: the image size (pixels) at which ``scales`` and ``sigma`` apply as given.
@@ -162,10 +162,11 @@ def dissolve_thin(labels: np.ndarray, radius: int) -> np.ndarray:
     Args:
         labels: [H, W] int partition; radius: the half-width of the square test window (0: no-op).
     Returns:
-        [H, W] int partition: each pixel of a region with no interior pixel (one whose
-        ``(2 radius + 1)``-square neighbourhood, clipped to the image, lies inside the region) takes
-        the label of the nearest pixel of a region that has one (Euclidean distance; unchanged
-        when no region has an interior pixel).
+        [H, W] int partition: each pixel of a thin region — one of at least ``2 (2 radius + 1)^2``
+        pixels (smaller ones are small, not thin: Felzenszwalb's ``min_size`` governs them) with no
+        interior pixel (one whose ``(2 radius + 1)``-square neighbourhood, clipped to the image,
+        lies inside the region) — takes the label of the nearest pixel not in a thin region
+        (Euclidean distance; unchanged when every pixel is in one).
     """
     from scipy import ndimage
 
@@ -174,8 +175,10 @@ def dissolve_thin(labels: np.ndarray, radius: int) -> np.ndarray:
     size = 2 * radius + 1
     interior = ndimage.maximum_filter(labels, size=size, mode="nearest") == ndimage.minimum_filter(
         labels, size=size, mode="nearest")
-    has_interior = np.bincount(labels[interior].ravel(), minlength=int(labels.max()) + 1) > 0
-    thin = ~has_interior[labels]
+    n = int(labels.max()) + 1
+    has_interior = np.bincount(labels[interior].ravel(), minlength=n) > 0
+    large = np.bincount(labels.ravel(), minlength=n) >= 2 * size * size
+    thin = (~has_interior & large)[labels]
     if not thin.any() or thin.all():
         return labels
     _, (rows, cols) = ndimage.distance_transform_edt(thin, return_indices=True)
