@@ -202,7 +202,8 @@ def mask_args(wildcards):
 
 
 def mask_source(wildcards):
-    """The scene's mask source (simulated | files | sam): SAM needs more threads, memory and time."""
+    """The scene's mask source (simulated | files | sam | graph): SAM needs more threads, memory and time
+    (graph: one thread, under a second per 160x120 view)."""
     return json.loads(step_params(wildcards.scene, "masks")).get("source", "simulated")
 
 
@@ -395,7 +396,7 @@ def lift_params(wildcards):
 LIFT_LABELS_KEYS = ("min_confidence", "near")
 LIFT_CONTRASTIVE_ONLY = ("dim", "kernel", "temperature", "temperature_pos", "temperature_neg", "lr", "iterations",
                          "pixels", "pool_pixels", "init_std", "path", "fused", "pca_views", "log_every", "query")
-LIFT_SELF_PROMPT_ONLY = ("prompt_source", "simulate", "sam_checkpoint", "sam_model_type", "sam_device", "points",
+LIFT_SELF_PROMPT_ONLY = ("prompt_source", "simulate", "graph", "sam_checkpoint", "sam_model_type", "sam_device", "points",
                          "max_views", "gaussian_share", "mask_threshold", "min_prompt_pixels")
 
 

@@ -336,6 +336,10 @@ def _cmd_bench(args: argparse.Namespace) -> None:
         from .params import load_params_arg
 
         result = run_bench(Path(args.room), quick=args.quick, params=load_params_arg(args.params))
+    elif args.name == "prompts":
+        from .masks.prompt_bench import run_bench
+
+        result = run_bench(Path(args.room), views=4 if args.quick else 16)
     elif args.name == "lift-forms":
         from .lifting.bench import compare_forms
 
@@ -397,10 +401,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--params", help=params_help)
     p.set_defaults(func=_cmd_scene)
 
-    p = sub.add_parser("masks", help="2D instance masks per view (simulated | files | sam)")
+    p = sub.add_parser("masks", help="2D instance masks per view (simulated | files | sam | graph)")
     p.add_argument("--scene", required=True)
     p.add_argument("--out", required=True)
-    p.add_argument("--source", default="simulated", choices=["simulated", "files", "sam"])
+    p.add_argument("--source", default="simulated", choices=["simulated", "files", "sam", "graph"])
     p.add_argument("--params", help=params_help)
     p.set_defaults(func=_cmd_masks)
 
@@ -535,10 +539,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_tracing_table)
 
     p = sub.add_parser("bench", help="benchmarks; print one JSON object")
-    p.add_argument("name", choices=["render", "synthetic", "trace", "lift", "lift-forms", "fit", "fit-sweep"])
+    p.add_argument("name", choices=["render", "synthetic", "trace", "lift", "lift-forms", "fit", "fit-sweep",
+                                    "prompts"])
     p.add_argument("--room", default="results/room0",
                    help="trace, lift: a fitted room's results folder (scene/, poses/, gaussians/, patches/ or "
-                        "merge-paper/instances)")
+                        "merge-paper/instances); prompts: a room's results folder or canonical scene with ground "
+                        "truth (the prompt sources' answers scored against it, docs/masks.md)")
     p.add_argument("--params", help="lift: the lift step's parameters (JSON/YAML or @file) whose wall time is measured")
     p.add_argument("--quick", action="store_true", help="smaller sizes (smoke run)")
     p.add_argument("--size", action="append", metavar="WxH",

@@ -1,8 +1,10 @@
 """Self-prompting (paper Sec. 3.5, the online setting of SA3D / FlashSplat, with GIT).
 
 From point prompts on the reference view (``points`` pixels sampled inside the query mask: the one
-deepest inside it and random others), a promptable mask source (:mod:`trace3d.masks.prompts`)
-gives the reference view's mask (the granularity closest to the query mask, as a user picks one of
+deepest inside it and random others), a promptable mask source (:mod:`trace3d.masks.prompts`,
+``prompt_source``: ``sam``; ``graph``, the images' graph segmentation, which reads no ground truth;
+or ``simulated``, an *oracle* that answers from the ground-truth instance maps) gives the reference
+view's mask (the granularity closest to the query mask, as a user picks one of
 SAM's answers). Then, view by view along the training views ordered by pose
 proximity to the reference:
 
@@ -45,8 +47,9 @@ class SelfPromptParams:
 
     method: Literal["self_prompt"] = "self_prompt"
     preset: Literal["paper", "official"] = "paper"  # recorded; self-prompting has one form
-    prompt_source: Literal["simulated", "sam"] = "simulated"
+    prompt_source: Literal["simulated", "sam", "graph"] = "simulated"  # simulated: an oracle (reads ground truth)
     simulate: dict = field(default_factory=dict)  # SimulateParams overrides (simulated source)
+    graph: dict = field(default_factory=dict)  # GraphPromptParams overrides (graph source)
     sam_checkpoint: str | None = None
     sam_model_type: str = "vit_h"
     sam_device: str = "cpu"
@@ -63,6 +66,12 @@ class SelfPromptParams:
             raise ValueError(f"points and min_prompt_pixels must be >= 1, got {self.points}, {self.min_prompt_pixels}")
         if not (0.0 <= self.gaussian_share < 1.0 and 0.0 < self.mask_threshold < 1.0):
             raise ValueError("gaussian_share must be in [0, 1) and mask_threshold in (0, 1)")
+        if self.prompt_source == "graph":  # refuse a misspelled graph key before anything runs
+            from ..masks.graph import GraphParams, GraphPromptParams
+            from ..params import from_mapping
+
+            graph = from_mapping(GraphPromptParams, self.graph, "lift params graph")
+            from_mapping(GraphParams, graph.graph, "lift params graph.graph")
 
 
 def order_by_proximity(reference: Camera, cameras: Sequence[Camera]) -> list[Camera]:
@@ -191,7 +200,7 @@ def make_prompt_segmenter(scene: Scene, params: SelfPromptParams):
     from ..masks.prompts import make_segmenter
 
     return make_segmenter(params.prompt_source, scene, params.simulate, params.sam_checkpoint, params.sam_model_type,
-                          params.sam_device)
+                          params.sam_device, params.graph)
 
 
 def load_self_prompt(lift_dir: Path, info: dict, model: GaussianModel, scene: Scene,

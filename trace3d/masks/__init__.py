@@ -10,6 +10,8 @@ scores [M]:
   subpart / part / whole / group masks, calibrated in docs/masks_calibration.md).
 * ``files`` (:mod:`.files`): masks computed elsewhere, from the scene's ``masks/`` folder.
 * ``sam`` (:mod:`.sam`): Segment Anything's automatic mask generator (optional package).
+* ``graph`` (:mod:`.graph`): nested multi-scale graph segmentation of each image; reads no ground
+  truth, so it runs on a user's photos as on the synthetic rooms.
 
 :func:`run_masks` writes ``<frame>.npz`` ("masks" bool [M, H, W], "scores" float32 [M]) for every
 frame (train and test) and ``masks.json`` (source, resolved parameters, masks per view, and when the
@@ -30,6 +32,7 @@ from ..io import atomic_file, write_json
 from ..params import from_mapping, to_dict
 from ..scene import Scene
 from .files import FilesParams, iter_file_masks, read_mask_npz
+from .graph import GraphParams, GraphPromptSegmenter, iter_graph_masks
 from .patches import PatchHierarchy, PatchParams, masks_to_patches, read_patches, run_patches
 from .nested import NestedParams, iter_nested_masks, nested_view_masks
 from .sam import SamParams, iter_sam_masks
@@ -45,7 +48,7 @@ from .simulate import (
 
 log = logging.getLogger(__name__)
 
-SOURCES = ("simulated", "files", "sam")
+SOURCES = ("simulated", "files", "sam", "graph")
 SIMULATED_MODELS = ("one_level", "nested")
 
 __all__ = [
@@ -53,6 +56,8 @@ __all__ = [
     "FilesParams",
     "NestedParams",
     "SIMULATED_MODELS",
+    "GraphParams",
+    "GraphPromptSegmenter",
     "PatchHierarchy",
     "PatchParams",
     "SamParams",
@@ -89,6 +94,8 @@ def parse_params(source: str, params: dict | None):
         return from_mapping(FilesParams, params, "masks params (files)")
     if source == "sam":
         return from_mapping(SamParams, params, "masks params (sam)")
+    if source == "graph":
+        return from_mapping(GraphParams, params, "masks params (graph)")
     raise Trace3DError(f"unknown mask source {source!r}; expected one of {list(SOURCES)}.")
 
 
@@ -102,6 +109,8 @@ def iter_masks(scene: Scene, source: str, params) -> Iterator[tuple[str, np.ndar
         return iter_file_masks(scene, params)
     if source == "sam":
         return iter_sam_masks(scene, params)
+    if source == "graph":
+        return iter_graph_masks(scene, params)
     raise Trace3DError(f"unknown mask source {source!r}; expected one of {list(SOURCES)}.")
 
 

@@ -1,12 +1,15 @@
 """Promptable mask sources: point prompts on one view in, that view's mask of the prompted object out.
 
-Used by self-prompting (:mod:`trace3d.lifting.self_prompt`). Two sources share one method,
+Used by self-prompting (:mod:`trace3d.lifting.self_prompt`). Three sources share one method,
 ``segment(frame, points, rng) -> [H, W] bool`` with ``points`` [K, 2] pixel (x, y) coordinates:
 
 - :class:`SamPromptSegmenter`: SAM's ``SamPredictor`` (the ``segment_anything`` package and a
   checkpoint), all K points as positive prompts, the best-scored of SAM's three masks.
-- :class:`SimulatedPromptSegmenter`: from the scene's ground-truth instance maps with SAM-like
-  imperfections (:class:`trace3d.masks.simulate.SimulatedPromptSegmenter` answers each point: the
+- :class:`trace3d.masks.graph.GraphPromptSegmenter` (``graph``): the image's nested multi-scale graph
+  segmentation, the candidate closest to the rendered region (optionally GrabCut-refined); reads no
+  ground truth, so it runs on any scene.
+- :class:`SimulatedPromptSegmenter`: an **oracle** — it reads the scene's ground-truth instance maps
+  and answers with SAM-like imperfections (:class:`trace3d.masks.simulate.SimulatedPromptSegmenter` answers each point: the
   object, sometimes its part or its group, jittered boundaries); the K answers are combined by a
   per-pixel majority (at least half of them), which is how extra positive points steady SAM.
 """
@@ -115,7 +118,8 @@ class SamPromptSegmenter:
         problems = sam_problems(checkpoint)
         if problems:
             raise Trace3DError(f"the `sam` prompt source cannot run: {' and '.join(problems)}; use "
-                               f"`prompt_source: simulated` (prompts answered from ground truth) instead.")
+                               f"`prompt_source: graph` (graph segmentation of the images) or `prompt_source: simulated` "
+                               f"(an oracle: prompts answered from ground truth) instead.")
         from segment_anything import SamPredictor, sam_model_registry
 
         self.scene = scene
@@ -143,9 +147,14 @@ class SamPromptSegmenter:
 
 
 def make_segmenter(source: str, scene: Scene, simulate: Mapping | None = None, sam_checkpoint: str | None = None,
-                   sam_model_type: str = "vit_h", sam_device: str = "cpu") -> PromptSegmenter:
+                   sam_model_type: str = "vit_h", sam_device: str = "cpu",
+                   graph: Mapping | None = None) -> PromptSegmenter:
+    if source == "graph":
+        from .graph import GraphPromptSegmenter
+
+        return GraphPromptSegmenter(scene, graph)
     if source == "simulated":
         return SimulatedPromptSegmenter(scene, simulate)
     if source == "sam":
         return SamPromptSegmenter(scene, sam_checkpoint, sam_model_type, sam_device)
-    raise Trace3DError(f"unknown prompt source {source!r} (expected simulated or sam).")
+    raise Trace3DError(f"unknown prompt source {source!r} (expected simulated, sam or graph).")
