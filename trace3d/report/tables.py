@@ -185,7 +185,8 @@ def _grid_group(rows: list[Row]) -> list[Row]:
     "SP." row; other methods (the closed-form baseline) stay out of the grid."""
     def other(r: Row, method: bool = True) -> str:
         settings = {**SETTING_DEFAULTS, **r.settings}
-        kept = {k: v for k, v in settings.items() if k not in GRID_KEYS and (method or k != "lifting")}
+        kept = {k: v for k, v in settings.items()
+                if k not in GRID_KEYS + ("seed",) and (method or k not in ("lifting", "lift"))}
         return json.dumps(kept | ({"method": r.method} if method else {}), sort_keys=True)
 
     eligible = [r for r in rows if all(isinstance(r.settings.get(k), bool) for k in GRID_KEYS)]
