@@ -3,7 +3,10 @@
 Writes into ``out_dir``:
 
     metrics.json     per object (query, per-view scores, means), scene means, the protocol's
-                     settings, the lifting's lift.json and the variant label given by the rule
+                     settings, the lifting's lift.json and the variant label given by the rule;
+                     with ``single_point`` both tasks again with one query point
+                     (``"single_point"``), with ``panoptic`` the PQ^scene of the lifted features
+                     (``"panoptic"``, :mod:`.panoptic`)
     pictures.png     a few objects: reference view + query, the object rendered alone beside the
                      ground truth, the novel-view mask coloured TP / FP / FN
     objects/<id>.ply the object's Gaussians (the workflow puts objects/ beside eval/: --objects) (standard 3DGS/2DGS PLY layout; ``GaussianModel.read_ply``)
