@@ -180,7 +180,7 @@ def tiny_features(tmp_path_factory):
 
 
 QUICK = {"min_pixels": 20, "max_occluded_fraction": 0.25, "object_files": False, "picture_objects": 0,
-         "panoptic_samples": 1500}
+         "panoptic_samples": 1500, "panoptic_min_share": 0.0025}
 
 
 def run(root, out, lift="lift", **params):
