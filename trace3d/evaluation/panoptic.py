@@ -388,15 +388,13 @@ def evaluate_panoptic(lifted, gt, frames: Sequence[str], cameras: dict, samples:
                       seed: int, min_pixels: int) -> dict:
     """PQ^scene of a feature-lifted scene over the views ``frames`` (module docstring).
 
-    ``lifted`` needs ``model``, ``features`` [N, D], ``train_weights()`` and ``params.near`` (the
+    ``lifted`` needs ``model``, ``features`` [N, D], ``visibility()`` [N] and ``params.near`` (the
     contrastive lift's :class:`~trace3d.lifting.query.FeatureLifted`); ``gt`` is the evaluation's
     :class:`~trace3d.evaluation.groundtruth.GroundTruth`; ``cameras`` maps frame names to cameras.
     Evaluated objects with fewer than ``min_pixels`` pixels over all the views together are void.
     """
-    from ..lifting.query import summed_weights
-
     start = time.perf_counter()
-    weights = summed_weights(lifted.train_weights())
+    weights = lifted.visibility()
     clusters = cluster_features(lifted.features, weights, samples, min_share, seed)
     preds, truths = [], []
     for f in frames:

@@ -257,7 +257,7 @@ def _single_point(lifted, lift_info: dict, gt: GroundTruth, model, by_name: dict
 
 def _panoptic(lifted, lift_info: dict, gt: GroundTruth, cameras: list, by_name: dict, p: EvaluateParams) -> dict:
     """PQ^scene of the lifted features over the protocol's views (test, or all)."""
-    if not (hasattr(lifted, "feature_map") and hasattr(lifted, "train_cameras")):
+    if not (hasattr(lifted, "features") and hasattr(lifted, "visibility")):
         return {"skipped": f"lifting method {lift_info.get('method', '?')!r} has no lifted features"}
     frames = [c.name for c in cameras if p.views == "all" or c.split == "test"]
     return evaluate_panoptic(lifted, gt, frames, by_name, p.panoptic_samples, p.panoptic_min_share,

@@ -372,6 +372,12 @@ class FeatureLifted:
             self._total = summed_weights(self._weights)
         return self._weights
 
+    def visibility(self) -> np.ndarray:
+        """[N] float64: every Gaussian's blending weight summed over all training pixels (computed once,
+        with :meth:`train_weights`)."""
+        self.train_weights()
+        return self._total
+
     def _reference_camera(self, query: ObjectQuery) -> Camera:
         for c in self.train_cameras:
             if c.name == query.reference:
