@@ -136,6 +136,10 @@ class GroundTruth:
                     occ = occluded_fraction(mask, depth, params.occlusion_depth_ratio)
                 self.info[oid].append(ViewInfo(cam.name, cam.split, pixels, occ, touches_border(mask) if pixels else False))
 
+    def instances(self, frame: str) -> np.ndarray:
+        """[H, W] leaf ids of ``frame`` (``instances/<frame>.png``)."""
+        return self._instances[frame]
+
     def mask(self, object_id: int, frame: str) -> np.ndarray:
         """[H, W] bool ground-truth mask of ``object_id`` in ``frame``."""
         return object_mask(self._instances[frame], self.members[object_id])

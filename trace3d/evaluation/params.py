@@ -10,9 +10,9 @@ PROTOCOLS = ("standard", "official")
 # what each protocol fills in for the settings left at None
 PROTOCOL_VALUES = {
     "standard": {"views": "test", "min_pixels": 50, "skip_occluded_nvs": False, "reference": "largest_unoccluded",
-                 "accuracy": "accuracy"},
+                 "accuracy": "accuracy", "single_point": True, "panoptic": True},
     "official": {"views": "all", "min_pixels": 200, "skip_occluded_nvs": True, "reference": "largest",
-                 "accuracy": "precision"},
+                 "accuracy": "precision", "single_point": False, "panoptic": False},
 }
 
 
@@ -44,6 +44,17 @@ class EvaluateParams:
     object_files: write ``objects/<id>.ply`` and ``objects/<id>.png``.
     turntable_views, turntable_size: views (and their side in pixels) of ``objects/<id>.png``.
     near: near plane of every render.
+    single_point: also score both tasks with the lifted scene queried by ONE query point
+        (``max_queries: 1`` of the query; methods without query points skip it), written to
+        ``metrics.json["single_point"]`` (standard: on; official: off).
+    panoptic: scene-level instance segmentation from the lifted features alone, scored as PQ^scene
+        over the scored views (:mod:`trace3d.evaluation.panoptic`; methods without lifted features skip
+        it), written to ``metrics.json["panoptic"]`` (standard: on; official: off).
+    panoptic_samples: rendered training-view pixels drawn for the clustering.
+    panoptic_min_share: the smallest cluster's share of those samples (HDBSCAN's min_cluster_size =
+        min_samples = ceil(samples * share) = 8; 0.001 = 19 px of a 160x120 view on average; chosen on
+        exact object labels only, docs/evaluation.md).
+    panoptic_seed: seed of the pixel draw.
     """
 
     protocol: Literal["standard", "official"] = "standard"
@@ -62,11 +73,19 @@ class EvaluateParams:
     turntable_views: int = 8
     turntable_size: int = 96
     near: float = 0.01
+    single_point: bool | None = None
+    panoptic: bool | None = None
+    panoptic_samples: int = 8000
+    panoptic_min_share: float = 0.001
+    panoptic_seed: int = 0
 
     def __post_init__(self) -> None:
         for key, value in PROTOCOL_VALUES[self.protocol].items():
             if getattr(self, key) is None:
                 setattr(self, key, value)
+        if self.panoptic_samples < 2 or not 0.0 < self.panoptic_min_share < 1.0:
+            raise ValueError(f"panoptic_samples must be at least 2 and panoptic_min_share in (0, 1), got "
+                             f"{self.panoptic_samples}, {self.panoptic_min_share}.")
         if self.min_pixels < 1:
             raise ValueError(f"min_pixels must be at least 1, got {self.min_pixels}.")
         if not 0.0 <= self.max_occluded_fraction <= 1.0:

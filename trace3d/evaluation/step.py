@@ -3,7 +3,10 @@
 Writes into ``out_dir``:
 
     metrics.json     per object (query, per-view scores, means), scene means, the protocol's
-                     settings, the lifting's lift.json and the variant label given by the rule
+                     settings, the lifting's lift.json and the variant label given by the rule;
+                     with ``single_point`` both tasks again with one query point
+                     (``"single_point"``), with ``panoptic`` the PQ^scene of the lifted features
+                     (``"panoptic"``, :mod:`.panoptic`)
     pictures.png     a few objects: reference view + query, the object rendered alone beside the
                      ground truth, the novel-view mask coloured TP / FP / FN
     objects/<id>.ply the object's Gaussians (the workflow puts objects/ beside eval/: --objects) (standard 3DGS/2DGS PLY layout; ``GaussianModel.read_ply``)
@@ -37,6 +40,7 @@ from .extraction import evaluate_extraction, render_alone
 from .groundtruth import GroundTruth
 from .metrics import mean_or_none
 from .nvs import evaluate_nvs
+from .panoptic import evaluate_panoptic
 from .params import EvaluateParams
 from .pictures import world_up, write_pictures, write_turntable
 
@@ -111,18 +115,8 @@ def run_evaluate(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Path, l
             skipped.append({"id": oid, "name": gt.name(oid),
                             "reason": f"no training view shows it with at least {p.min_pixels} pixels"})
             continue
-        keep = np.asarray(lifted.object_gaussians(query))
-        if keep.shape != (len(model),) or keep.dtype != bool:
-            raise Trace3DError(f"evaluate: the lifted scene of {lift_dir} returned object Gaussians of shape "
-                               f"{keep.shape} ({keep.dtype}); expected [{len(model)}] bool.")
-        ext_frames, nvs_frames = gt.extraction_views(oid), gt.nvs_views(oid)
-        ext_cams = [by_name[f] for f in ext_frames]
-        ext_truth = [gt.mask(oid, f) for f in ext_frames]
-        extraction = evaluate_extraction(model, keep, ext_cams, ext_truth, [image(f) for f in ext_frames],
-                                         p.alpha_eps, p.psnr_margin, p.near)
-        nvs_cams = [by_name[f] for f in nvs_frames]
-        nvs_truth = [gt.mask(oid, f) for f in nvs_frames]
-        nvs, nvs_preds = evaluate_nvs(lifted, query, nvs_cams, nvs_truth, p.accuracy)
+        keep, ext_frames, nvs_frames, extraction, nvs, nvs_preds = _score_object(
+            lifted, query, oid, gt, model, by_name, image, p, lift_dir)
         entry = {
             "id": oid, "name": gt.name(oid), "reference": query.reference, "query_pixels": int(query.mask.sum()),
             "gaussians": int(keep.sum()),
@@ -148,21 +142,12 @@ def run_evaluate(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Path, l
                 lifted.object_masks(query, [by_name[best]])[0]
             picture_data[oid] = {"frame": best, "render": rgb, "pred": np.asarray(pred, bool)}
 
-    scored_ext = [o for o in objects if o["extraction"]["iou"] is not None]
-    scored_nvs = [o for o in objects if o["nvs"]["iou"] is not None]
-    pairs_ext = [v for o in objects for v in o["extraction"]["views"]]
-    pairs_nvs = [v for o in objects for v in o["nvs"]["views"]]
-    summary = {
-        "extraction": {"mIoU": mean_or_none([o["extraction"]["iou"] for o in scored_ext]),
-                       "PSNR": mean_or_none([o["extraction"]["psnr"] for o in scored_ext]),
-                       "objects": len(scored_ext), "views": len(pairs_ext),
-                       "pooled": _means(pairs_ext, ("iou", "psnr"))},
-        "nvs": {"mIoU": mean_or_none([o["nvs"]["iou"] for o in scored_nvs]),
-                "mAcc": mean_or_none([o["nvs"]["acc"] for o in scored_nvs]),
-                "mAcc_definition": "precision TP/(TP+FP)" if p.accuracy == "precision" else "accuracy (TP+TN)/pixels",
-                "objects": len(scored_nvs), "views": len(pairs_nvs),
-                "pooled": _means(pairs_nvs, ("iou", "acc"))},
-    }
+    summary = _summary(objects, p)
+    extra = {}
+    if p.single_point:
+        extra["single_point"] = _single_point(lifted, lift_info, gt, model, by_name, image, p, lift_dir)
+    if p.panoptic:
+        extra["panoptic"] = _panoptic(lifted, lift_info, gt, cameras, by_name, p)
     rows = []
     for i in _picture_choice(objects, p.picture_objects):
         o = objects[i]
@@ -198,6 +183,7 @@ def run_evaluate(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Path, l
         **summary,
         "objects": objects,
         "skipped": skipped,
+        **extra,
         "seconds": seconds,
     }
     write_json(out_dir / "metrics.json", metrics)
@@ -205,6 +191,77 @@ def run_evaluate(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Path, l
              len(skipped), _fmt(summary["extraction"]["mIoU"]), _fmt(summary["extraction"]["PSNR"], 1),
              _fmt(summary["nvs"]["mIoU"]), seconds)
     return metrics
+
+
+def _score_object(lifted, query, oid: int, gt: GroundTruth, model, by_name: dict, image, p: EvaluateParams,
+                  lift_dir: Path):
+    """Both tasks for one object: (keep [N] bool, extraction frames, NVS frames, extraction scores,
+    NVS scores, NVS masks)."""
+    keep = np.asarray(lifted.object_gaussians(query))
+    if keep.shape != (len(model),) or keep.dtype != bool:
+        raise Trace3DError(f"evaluate: the lifted scene of {lift_dir} returned object Gaussians of shape "
+                           f"{keep.shape} ({keep.dtype}); expected [{len(model)}] bool.")
+    ext_frames, nvs_frames = gt.extraction_views(oid), gt.nvs_views(oid)
+    ext_cams = [by_name[f] for f in ext_frames]
+    ext_truth = [gt.mask(oid, f) for f in ext_frames]
+    extraction = evaluate_extraction(model, keep, ext_cams, ext_truth, [image(f) for f in ext_frames],
+                                     p.alpha_eps, p.psnr_margin, p.near)
+    nvs_cams = [by_name[f] for f in nvs_frames]
+    nvs_truth = [gt.mask(oid, f) for f in nvs_frames]
+    nvs, nvs_preds = evaluate_nvs(lifted, query, nvs_cams, nvs_truth, p.accuracy)
+    return keep, ext_frames, nvs_frames, extraction, nvs, nvs_preds
+
+
+def _summary(objects: list[dict], p: EvaluateParams) -> dict:
+    """Scene means of both tasks over the objects with a scored view, and the pooled means."""
+    scored_ext = [o for o in objects if o["extraction"]["iou"] is not None]
+    scored_nvs = [o for o in objects if o["nvs"]["iou"] is not None]
+    pairs_ext = [v for o in objects for v in o["extraction"]["views"]]
+    pairs_nvs = [v for o in objects for v in o["nvs"]["views"]]
+    return {
+        "extraction": {"mIoU": mean_or_none([o["extraction"]["iou"] for o in scored_ext]),
+                       "PSNR": mean_or_none([o["extraction"]["psnr"] for o in scored_ext]),
+                       "objects": len(scored_ext), "views": len(pairs_ext),
+                       "pooled": _means(pairs_ext, ("iou", "psnr"))},
+        "nvs": {"mIoU": mean_or_none([o["nvs"]["iou"] for o in scored_nvs]),
+                "mAcc": mean_or_none([o["nvs"]["acc"] for o in scored_nvs]),
+                "mAcc_definition": "precision TP/(TP+FP)" if p.accuracy == "precision" else "accuracy (TP+TN)/pixels",
+                "objects": len(scored_nvs), "views": len(pairs_nvs),
+                "pooled": _means(pairs_nvs, ("iou", "acc"))},
+    }
+
+
+def _single_point(lifted, lift_info: dict, gt: GroundTruth, model, by_name: dict, image, p: EvaluateParams,
+                  lift_dir: Path) -> dict:
+    """Both tasks again with the lifted scene queried by one query point (``max_queries: 1``): the same
+    objects, references, views and means as the multi-point protocol."""
+    if not hasattr(lifted, "with_query"):
+        return {"skipped": f"lifting method {lift_info.get('method', '?')!r} has no query points"}
+    start = time.perf_counter()
+    one = lifted.with_query(max_queries=1)
+    objects = []
+    for oid in gt.object_ids:
+        query = gt.query(oid)
+        if query is None:
+            continue
+        keep, _, _, extraction, nvs, _ = _score_object(one, query, oid, gt, model, by_name, image, p, lift_dir)
+        objects.append({"id": oid, "query_points": int(one.query_points(query).features.shape[0]),
+                        "gaussians": int(keep.sum()),
+                        "extraction": {**_means(extraction, ("iou", "psnr")), "views": extraction},
+                        "nvs": {**_means(nvs, ("iou", "acc")), "views": nvs}})
+    out = {"max_queries": 1, **_summary(objects, p), "objects": objects, "seconds": time.perf_counter() - start}
+    log.info("evaluate, one query point: object mIoU %s, NVS mIoU %s, %.1f s", _fmt(out["extraction"]["mIoU"]),
+             _fmt(out["nvs"]["mIoU"]), out["seconds"])
+    return out
+
+
+def _panoptic(lifted, lift_info: dict, gt: GroundTruth, cameras: list, by_name: dict, p: EvaluateParams) -> dict:
+    """PQ^scene of the lifted features over the protocol's views (test, or all)."""
+    if not (hasattr(lifted, "features") and hasattr(lifted, "visibility")):
+        return {"skipped": f"lifting method {lift_info.get('method', '?')!r} has no lifted features"}
+    frames = [c.name for c in cameras if p.views == "all" or c.split == "test"]
+    return evaluate_panoptic(lifted, gt, frames, by_name, p.panoptic_samples, p.panoptic_min_share,
+                             p.panoptic_seed, p.min_pixels)
 
 
 def _fmt(value: float | None, digits: int = 3) -> str:

@@ -339,6 +339,20 @@ class FeatureLifted:
         self._weights: list | None = None
         self._total: np.ndarray | None = None
 
+    def with_query(self, **overrides) -> "FeatureLifted":
+        """The same lifted scene queried with other :class:`QueryParams` (e.g. ``max_queries=1``, the
+        evaluation's single-query-point protocol); it shares the rendered feature maps and the training
+        views' pixel weights with this one (they do not depend on the query parameters)."""
+        params = dataclasses.replace(self.params, **overrides)
+        other = FeatureLifted(self.model, self.features, self.train_cameras, params)
+        if params.near != self.params.near:
+            return other
+        other._maps = self._maps
+        if self._weights is None:
+            self.train_weights()
+        other._weights, other._total = self._weights, self._total
+        return other
+
     def feature_map(self, camera: Camera) -> np.ndarray:
         """[H, W, D] rendered features (cached per view: every query of an evaluation reuses them)."""
         from .contrastive import render_feature_map
@@ -357,6 +371,12 @@ class FeatureLifted:
                 self._weights = [pixel_weights(splats, c, near=self.params.near) for c in self.train_cameras]
             self._total = summed_weights(self._weights)
         return self._weights
+
+    def visibility(self) -> np.ndarray:
+        """[N] float64: every Gaussian's blending weight summed over all training pixels (computed once,
+        with :meth:`train_weights`)."""
+        self.train_weights()
+        return self._total
 
     def _reference_camera(self, query: ObjectQuery) -> Camera:
         for c in self.train_cameras:

@@ -1,0 +1,224 @@
+"""PQ^scene on hand-counted label sets, HDBSCAN on separated feature clusters, the scene ground truth's
+nesting, and the evaluate step's panoptic and single-query-point protocols on a tiny room."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from trace3d.evaluation.panoptic import FeatureClusters, cluster_features, hdbscan, panoptic_quality, scene_truth
+
+pytestmark = pytest.mark.usefixtures("single_numba_thread")
+
+
+# ----------------------------------------------------------------------------------------------
+# PQ^scene by hand: object 1 has 100 px, object 2 has 100 px (0 = void)
+# ----------------------------------------------------------------------------------------------
+
+def labels(*runs):
+    return np.concatenate([np.full(n, v, np.int64) for v, n in runs])
+
+
+TRUTH = labels((1, 100), (2, 100))
+
+
+def test_perfect_segmentation_scores_one_whatever_the_ids():
+    s = panoptic_quality(labels((7, 100), (3, 100)), TRUTH)
+    assert (s.pq, s.sq, s.rq, s.miou) == (1.0, 1.0, 1.0, 1.0)
+    assert (s.tp, s.fp, s.fn) == (2, 0, 0)
+    assert sorted(s.matches) == [(1, 7, 1.0), (2, 3, 1.0)]
+
+
+def test_one_object_split_in_two():
+    # 60 / 40: the 60 piece matches (IoU 0.6), the 40 piece is a false positive
+    s = panoptic_quality(labels((5, 60), (6, 40), (7, 100)), TRUTH)
+    assert (s.tp, s.fp, s.fn) == (2, 1, 0)
+    assert s.sq == pytest.approx(0.8) and s.rq == pytest.approx(2 / 2.5) and s.pq == pytest.approx(1.6 / 2.5)
+    assert s.miou == pytest.approx(0.8)
+    # 50 / 50: IoU 0.5 is not > 0.5, so object 1 is missed and both halves are false positives
+    s = panoptic_quality(labels((5, 50), (6, 50), (7, 100)), TRUTH)
+    assert (s.tp, s.fp, s.fn) == (1, 2, 1)
+    assert s.sq == 1.0 and s.rq == pytest.approx(1 / 2.5) and s.pq == pytest.approx(0.4)
+    assert s.miou == pytest.approx((0.5 + 1.0) / 2)  # Hungarian: one half still covers object 1 at 0.5
+
+
+def test_two_objects_merged():
+    truth = labels((1, 100), (2, 50))
+    s = panoptic_quality(labels((9, 150)), truth)
+    assert (s.tp, s.fp, s.fn) == (1, 0, 1)
+    assert s.sq == pytest.approx(100 / 150) and s.rq == pytest.approx(1 / 1.5)
+    assert s.pq == pytest.approx((100 / 150) / 1.5)
+    assert s.object_iou == {1: pytest.approx(100 / 150), 2: 0.0}
+    assert s.miou == pytest.approx(100 / 150 / 2)
+
+
+def test_false_positives_void_and_unmatched_objects():
+    truth = labels((1, 100), (0, 100), (2, 100))
+    # object 1 right plus 20 void pixels (void does not enlarge the union); a segment all on void is
+    # ignored; a segment on 10 void px and 30 px of object 2 is a false positive (a quarter void);
+    # object 2's other 70 px go to a segment that matches (IoU 0.7)
+    pred = labels((4, 100), (4, 20), (8, 60), (6, 10), (0, 10), (6, 30), (5, 70))
+    s = panoptic_quality(pred, truth)
+    assert s.matches == [(1, 4, 1.0), (2, 5, 0.7)]
+    assert (s.tp, s.fp, s.fn, s.ignored) == (2, 1, 0, 1)
+    assert s.pq == pytest.approx(1.7 / 2.5)
+    # nothing predicted: every object a false negative, PQ 0; nothing at all: undefined
+    empty = panoptic_quality(np.zeros(300, np.int64), truth)
+    assert (empty.pq, empty.tp, empty.fn, empty.miou) == (0.0, 0, 2, 0.0)
+    assert panoptic_quality(np.zeros(5, np.int64), np.zeros(5, np.int64)).pq is None
+    with pytest.raises(ValueError):
+        panoptic_quality(np.zeros(3, np.int64), np.zeros(4, np.int64))
+
+
+def test_scene_pq_sees_ids_that_change_between_views():
+    # two views of the same two objects; per view the segmentation is perfect, but the second view swaps
+    # the predicted ids: over the concatenated views no instance is one object
+    view = labels((1, 100), (2, 100))
+    pred = np.concatenate([labels((10, 100), (20, 100)), labels((20, 100), (10, 100))])
+    s = panoptic_quality(pred, np.concatenate([view, view]))
+    assert s.tp == 0 and s.pq == 0.0
+    assert panoptic_quality(labels((10, 100), (20, 100)), view).pq == 1.0
+
+
+def test_scene_truth_takes_the_finest_evaluated_object():
+    # leaf ids: 1 = table top, 2 = table leg (both under table 3); 4 = lamp; 5 = unevaluated
+    table = np.zeros(6, bool)
+    table[[1, 2, 3]] = True
+    leg = np.zeros(6, bool)
+    leg[2] = True
+    lamp = np.zeros(6, bool)
+    lamp[4] = True
+    instances = np.array([[1, 2, 4, 5, 0]])
+    out = scene_truth(instances, {3: table, 2: leg, 4: lamp})
+    assert out.tolist() == [[3, 2, 4, 0, 0]]
+
+
+# ----------------------------------------------------------------------------------------------
+# clustering
+# ----------------------------------------------------------------------------------------------
+
+def blobs(seed=0):
+    rng = np.random.default_rng(seed)
+    centres = np.eye(16)[:5] * 4.0
+    sizes = (400, 250, 150, 60, 30)
+    x = np.concatenate([c + rng.normal(scale=0.15, size=(n, 16)) for c, n in zip(centres, sizes)])
+    truth = np.repeat(np.arange(5), sizes)
+    return x, truth, rng
+
+
+def test_hdbscan_recovers_separated_clusters_and_leaves_scatter_as_noise():
+    x, truth, rng = blobs()
+    scatter = rng.uniform(-6, 10, size=(20, 16))
+    got = hdbscan(np.concatenate([x, scatter]), min_cluster_size=10)
+    assert got.max() == 4
+    for k in range(5):  # each blob is one cluster of its own
+        ids = set(got[:len(x)][truth == k].tolist())
+        assert len(ids) == 1 and -1 not in ids
+    assert len(set(got[:len(x)].tolist())) == 5
+    assert (got[len(x):] == -1).mean() >= 0.9
+    # a blob smaller than min_cluster_size is no cluster
+    small = hdbscan(x, min_cluster_size=40)
+    assert (small[truth == 4] == -1).all() and small.max() == 3
+
+
+def test_hdbscan_one_blob_is_one_cluster():
+    rng = np.random.default_rng(1)
+    got = hdbscan(rng.normal(size=(300, 4)), min_cluster_size=10)
+    assert set(got.tolist()) <= {-1, 0} and (got == 0).mean() > 0.8
+
+
+def test_cluster_features_gives_every_gaussian_its_blob():
+    x, truth, _ = blobs(2)
+    weights = np.ones(len(x))
+    weights[::7] = 0.0  # never seen: never sampled, still labelled
+    c = cluster_features(x, weights, samples=500, min_share=0.02, seed=0)
+    assert isinstance(c, FeatureClusters) and c.count == 5 and c.min_cluster_size == 10
+    assert c.samples == 500 and not np.isin(c.sample_index, np.flatnonzero(weights == 0)).any()
+    again = cluster_features(x, weights, samples=500, min_share=0.02, seed=0)
+    assert np.array_equal(c.instance, again.instance) and np.array_equal(c.sample_index, again.sample_index)
+    assert panoptic_quality(c.instance, truth + 1).pq == 1.0  # every Gaussian, sampled or not, in its blob
+
+
+# ----------------------------------------------------------------------------------------------
+# the evaluate step: panoptic and single-query-point protocols on a tiny contrastive lift
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def tiny_features(tmp_path_factory):
+    """A tiny room, Gaussians on its ground-truth depth, and a "contrastive" lift whose features are
+    one well-separated point per label of an oracle label assignment (the ideal lift)."""
+    from trace3d.cli import main
+    from trace3d.gaussians import init_from_depth
+    from trace3d.lifting.labels import run_labels_lift
+    from trace3d.scene import Scene, write_u16
+
+    root = tmp_path_factory.mktemp("panoptic")
+    synthetic = json.dumps({"seed": 3, "width": 48, "height": 36, "num_views": 8, "test_every": 2, "num_objects": 6,
+                            "supersample": 1})
+    assert main(["scene", "synthetic", "--out", str(root / "scene"), "--params", synthetic]) == 0
+    scene = Scene.read(root / "scene")
+    model = init_from_depth(scene, cameras=scene.cameras, stride=1, max_points=None, sh_degree=0, opacity=0.95)
+    model.log_scales = model.log_scales - 0.3
+    (root / "gaussians").mkdir()
+    model.write_ply(root / "gaussians" / "point_cloud.ply")
+    lookup = scene.objects.lookup("object")
+    for cam in scene.train_cameras:
+        write_u16(root / "labels" / f"{cam.name}.png", lookup[scene.instances(cam.name)].astype(np.uint16))
+    (root / "labels_lift").mkdir()
+    run_labels_lift(scene, None, root / "gaussians", root / "labels", root / "labels_lift", {})
+    with np.load(root / "labels_lift" / "labels.npz") as data:
+        label = data["label"]
+    centres = np.random.default_rng(0).normal(size=(int(label.max()) + 2, 16)).astype(np.float32) * 10.0
+    for name, feats in (("lift", centres[label + 1]), ("merged", np.zeros_like(centres[label + 1]))):
+        (root / name).mkdir()
+        np.save(root / name / "features.npy", feats)
+        (root / name / "lift.json").write_text(json.dumps({"method": "contrastive", "params": {}}))
+    return root
+
+
+QUICK = {"min_pixels": 20, "max_occluded_fraction": 0.25, "object_files": False, "picture_objects": 0,
+         "panoptic_samples": 1500, "panoptic_min_share": 0.0025}
+
+
+def run(root, out, lift="lift", **params):
+    from trace3d.evaluation.step import run_evaluate
+
+    return run_evaluate(root / "scene", None, root / "gaussians", root / lift, out, {**QUICK, **params})
+
+
+def test_evaluate_writes_panoptic_and_single_point_beside_the_old_keys(tiny_features, tmp_path):
+    root = tiny_features
+    m = run(root, tmp_path / "a")
+    pan = m["panoptic"]
+    # the ideal lift: one feature point per label of an oracle assignment, so clustering finds the
+    # objects (at 48x36 the objects are ~100 px over the four test views: the IoUs stay near 0.6-0.85)
+    assert pan["PQ"] > 0.4 and pan["mIoU"] > 0.5 and pan["TP"] >= 3 and pan["objects"] == 4
+    assert pan["PQ"] == pytest.approx(pan["SQ"] * pan["RQ"])
+    assert pan["views"] == 4 and pan["pixels"] == 4 * 48 * 36
+    # every feature equal: one instance for the whole scene, at most one object can match
+    merged = run(root, tmp_path / "m", lift="merged")["panoptic"]
+    assert merged["clusters"] == 1 and merged["TP"] == 0 and merged["PQ"] == 0.0
+    one = m["single_point"]
+    assert one["max_queries"] == 1 and all(o["query_points"] == 1 for o in one["objects"])
+    assert [o["id"] for o in one["objects"]] == [o["id"] for o in m["objects"]]
+    assert one["nvs"]["objects"] == m["nvs"]["objects"] and one["nvs"]["mIoU"] is not None
+    # the protocols' old keys do not change when the new ones are switched off (or on)
+    off = run(root, tmp_path / "b", single_point=False, panoptic=False)
+    assert "panoptic" not in off and "single_point" not in off
+    for key in ("extraction", "nvs", "objects", "skipped", "gaussians"):
+        assert json.dumps(off[key]) == json.dumps(m[key])
+    # the official protocol computes neither by default
+    official = run(root, tmp_path / "o", protocol="official")
+    assert "panoptic" not in official and "single_point" not in official
+    saved = json.loads((tmp_path / "a" / "metrics.json").read_text())
+    assert saved["panoptic"]["PQ"] == pan["PQ"] and saved["single_point"]["nvs"]["mIoU"] == one["nvs"]["mIoU"]
+
+
+def test_bad_panoptic_parameters_are_refused(tiny_features, tmp_path):
+    from trace3d.errors import Trace3DError
+
+    with pytest.raises((Trace3DError, ValueError)):
+        run(tiny_features, tmp_path / "x", panoptic_min_share=0.0)
