@@ -37,8 +37,8 @@ METRICS = (
     ("NVS mIoU", ("nvs", "mIoU"), 100.0),
     ("PQ scene", ("panoptic", "PQ"), 100.0),
     ("scene mIoU", ("panoptic", "mIoU"), 100.0),
-    ("object mIoU 1pt", ("single_query", "extraction", "mIoU"), 100.0),
-    ("NVS mIoU 1pt", ("single_query", "nvs", "mIoU"), 100.0),
+    ("object mIoU 1pt", ("single_point", "extraction", "mIoU"), 100.0),
+    ("NVS mIoU 1pt", ("single_point", "nvs", "mIoU"), 100.0),
 )
 # Paired effects: (label, variant, minus variant).
 EFFECTS = (
