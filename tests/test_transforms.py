@@ -189,10 +189,10 @@ def test_unknown_poses_leave_placeholders_for_colmap(room, tmp_path):
     for cam in imported.cameras:
         np.testing.assert_array_equal(cam.world_to_camera, np.eye(4))
         np.testing.assert_allclose(cam.K, scene.camera(cam.name).K)
-    from trace3d.sfm import run_poses
+    from trace3d.sfm import scene_has_reference_poses, scene_intrinsics_are_guessed
 
-    with pytest.raises(Trace3DError, match="unknown"):
-        run_poses(imported, tmp_path / "p", {"mode": "dataset"})
+    assert not scene_has_reference_poses(imported)  # the poses step must run COLMAP (mode dataset refused)
+    assert not scene_intrinsics_are_guessed(imported)  # ... from the file's intrinsics
 
 
 def _analytic_image(x, y):
@@ -288,9 +288,10 @@ def test_bad_input_is_one_sentence(room, tmp_path, case, edit, message, capsys):
     _edit(tmp_path / "ngp", edit)
     out = tmp_path / "out"
     assert cli_main(["scene", "transforms", "--source", str(tmp_path / "ngp"), "--out", str(out)]) == 2
-    err = capsys.readouterr().err.strip()
-    assert message in err and "transforms.json" in err or "nope.png" in err, err
-    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    err = capsys.readouterr().err
+    errors = [line for line in err.splitlines() if "error:" in line]
+    assert len(errors) == 1 and "Traceback" not in err, err
+    assert message in errors[0] and ("transforms.json" in errors[0] or "nope.png" in errors[0]), err
     assert not out.exists()
 
 

@@ -402,18 +402,20 @@ def import_transforms(source: Path, out_dir: Path, params: TransformsParams) -> 
                 f"{lacking[0].json_path}: the images have different sizes ({', '.join(shown[:4])}) but frame "
                 f"{lacking[0].index} ({lacking[0].entry.get('file_path')}) has no intrinsics of its own (fl_x or "
                 "camera_angle_x per frame); give every frame its own intrinsics or resize the images alike.")
+    lenses = [intrinsics(frame, *sizes[path]) for frame, path in zip(frames, paths)]  # all checked first
+    for frame, (_, coeffs, model) in zip(frames, lenses):
+        if model != "pinhole" and params.distortion == "refuse":
+            raise Trace3DError(
+                f"{frame.json_path}: frame {frame.index} ({frame.entry.get('file_path')}) has distortion "
+                f"coefficients {dict(zip(DISTORTION_KEYS, coeffs.tolist()))}; set distortion: undistort or "
+                "give undistorted images.")
     cameras, meta_frames, models = [], {}, set()
-    for frame, path, name, split, w2c in tqdm(list(zip(frames, paths, names, splits, world_to_cameras)),
-                                              desc=f"transforms {source.name}", unit="frame"):
+    rows = list(zip(frames, paths, names, splits, world_to_cameras, lenses))
+    for frame, path, name, split, w2c, (K, coeffs, model) in tqdm(rows, desc=f"transforms {source.name}",
+                                                                   unit="frame"):
         width, height = sizes[path]
-        K, coeffs, model = intrinsics(frame, width, height)
         rgb = read_image(path, params.background)
         if model != "pinhole":
-            if params.distortion == "refuse":
-                raise Trace3DError(
-                    f"{frame.json_path}: frame {frame.index} ({frame.entry.get('file_path')}) has distortion "
-                    f"coefficients {dict(zip(DISTORTION_KEYS, coeffs.tolist()))}; set distortion: undistort or "
-                    "give undistorted images.")
             rgb, K = undistort(rgb, K, coeffs, model)
         models.add(model)
         rgb, (sx, sy) = shrink_to_max_side(rgb, params.max_side)
