@@ -9,7 +9,8 @@ No reference mask is needed.  From the clicked pixel of training view V:
    holds the click; the region kept is the most *stable* one (as MSER does for grey levels): the t
    minimising the relative growth (|R(t + delta)| - |R(t - delta)|) / |R(t)| (delta =
    ``stability_delta`` grid steps), among regions of at least ``min_region_pixels`` pixels whose grown
-   neighbour R(t + delta) covers less than ``max_region_fraction`` of the view.  Contrastive features
+   neighbour R(t + delta) covers less than ``max_region_fraction`` of the view (near-ties, within
+   ``stability_tolerance``, go to the widest run of thresholds).  Contrastive features
    are nearly constant on an object and jump at its border, so the object is the region that stops
    growing over the widest range of thresholds;
 3. that region is the reference mask of the paper's query (Sec. 3.5): the query points and their
@@ -53,6 +54,8 @@ class ExtractParams:
         point: the clicked pixel (x, y): column and row of the view's image, 0-based (fractions are floored).
         threshold_steps: thresholds tried when growing the region from the click.
         stability_delta: grid steps on either side over which a region's growth is measured.
+        stability_tolerance: regions whose relative growth is within this of the most stable one's are
+            near-ties, decided by the widest run of thresholds.
         min_region_pixels: smallest region that counts as an object.
         max_region_fraction: a region whose grown neighbour covers this fraction of the view is not an object.
         picture_views: training views the object is rendered from in ``object.png``.
@@ -63,6 +66,7 @@ class ExtractParams:
     point: tuple[float, ...] = ()
     threshold_steps: int = 64
     stability_delta: int = 2
+    stability_tolerance: float = 0.02
     min_region_pixels: int = 4
     max_region_fraction: float = 0.9
     picture_views: int = 6
@@ -73,6 +77,8 @@ class ExtractParams:
         if self.threshold_steps < 4 or not 1 <= self.stability_delta < self.threshold_steps // 2:
             raise ValueError(f"threshold_steps must be >= 4 and stability_delta in [1, threshold_steps / 2), got "
                              f"{self.threshold_steps}, {self.stability_delta}")
+        if self.stability_tolerance < 0:
+            raise ValueError(f"stability_tolerance must be >= 0, got {self.stability_tolerance}")
         if self.min_region_pixels < 1 or not 0.0 < self.max_region_fraction <= 1.0:
             raise ValueError("min_region_pixels must be >= 1 and max_region_fraction in (0, 1]")
         if self.picture_views < 0 or self.turntable_views < 0 or self.turntable_size < 8:
@@ -127,13 +133,28 @@ def grow_from_click(feature_map: np.ndarray, x: int, y: int, params: ExtractPara
         areas.append(int(region.sum()))
     areas = np.asarray(areas, np.int64)
     delta, total = params.stability_delta, height * width
-    best, best_score = None, np.inf
+    scores = np.full(len(thresholds), np.inf)
     for k in range(delta, len(thresholds) - delta):
-        if areas[k] < params.min_region_pixels or areas[k + delta] >= params.max_region_fraction * total:
-            continue
-        score = (areas[k + delta] - areas[k - delta]) / areas[k]
-        if score < best_score:
-            best, best_score = k, score
+        if areas[k] >= params.min_region_pixels and areas[k + delta] < params.max_region_fraction * total:
+            scores[k] = (areas[k + delta] - areas[k - delta]) / areas[k]
+    best, best_score = None, float(scores.min())
+    if np.isfinite(best_score):
+        # the most stable regions; among near-ties, the widest run of thresholds (a flat object with a
+        # blended border is stable both without and with its border ring: the wider plateau is the object)
+        near = scores <= best_score + params.stability_tolerance
+        runs, k = [], 0
+        while k < len(near):
+            if near[k]:
+                end = k
+                while end + 1 < len(near) and near[end + 1]:
+                    end += 1
+                runs.append((end - k + 1, -k, k, end))
+                k = end + 1
+            else:
+                k += 1
+        _, _, first, last = max(runs)
+        best = first + int(np.argmin(scores[first: last + 1]))
+        best_score = float(scores[best])
     if best is None:
         raise Trace3DError(f"extract: no object region grows from the point ({x}, {y}): every region is smaller than "
                            f"{params.min_region_pixels} pixels or covers {params.max_region_fraction:.0%} of the "
