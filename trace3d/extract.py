@@ -55,7 +55,7 @@ class ExtractParams:
         threshold_steps: thresholds tried when growing the region from the click.
         stability_delta: grid steps on either side over which a region's growth is measured.
         stability_tolerance: regions whose relative growth is within this of the most stable one's are
-            near-ties, decided by the widest run of thresholds.
+            near-ties, decided by the widest run of thresholds (0: exact ties only).
         min_region_pixels: smallest region that counts as an object.
         max_region_fraction: a region whose grown neighbour covers this fraction of the view is not an object.
         picture_views: training views the object is rendered from in ``object.png``.
@@ -66,7 +66,7 @@ class ExtractParams:
     point: tuple[float, ...] = ()
     threshold_steps: int = 64
     stability_delta: int = 2
-    stability_tolerance: float = 0.02
+    stability_tolerance: float = 0.0
     min_region_pixels: int = 4
     max_region_fraction: float = 0.9
     picture_views: int = 6
