@@ -16,12 +16,17 @@ No reference mask is needed.  From the clicked pixel of training view V:
 3. that region is the reference mask of the paper's query (Sec. 3.5): the query points and their
    thresholds come from :func:`~trace3d.lifting.query.find_query_points`, the object's masks at the
    training views from those, and its Gaussians are traced from the masks
-   (:meth:`~trace3d.lifting.query.FeatureLifted.object_gaussians`) — the code the evaluation runs.
+   (:meth:`~trace3d.lifting.query.FeatureLifted.object_gaussians`) — the code the evaluation runs;
+4. an object is one piece: with ``connected`` (default), of the traced Gaussians only those linked in
+   3D (centres closer than ``link_scale`` times the set's median nearest-neighbour distance, chained)
+   to the Gaussians that blend into the clicked pixel (its 3x3 neighbourhood) are kept.  A view where
+   the object is absent can still pass the query's thresholds on another object's pixels, whose
+   Gaussians are then traced too; they are far from the click and are dropped here.
 
 Writes into ``out_dir``: ``object.ply`` (the object's Gaussians, the 3DGS/2DGS PLY layout of
 :meth:`~trace3d.gaussians.GaussianModel.write_ply`, which Gaussian-splat viewers open), ``object.png``
 (the clicked view with the click and the object's mask, then the object rendered alone from
-``picture_views`` training views), ``turntable.png`` (the object alone from ``turntable_views``
+``picture_views`` training views, those that show most of it), ``turntable.png`` (the object alone from ``turntable_views``
 directions around it) and ``extract.json`` (the click, the chosen threshold, the region, the query
 points, the Gaussian count and the settings).
 """
@@ -58,6 +63,9 @@ class ExtractParams:
             near-ties, decided by the widest run of thresholds (0: exact ties only).
         min_region_pixels: smallest region that counts as an object.
         max_region_fraction: a region whose grown neighbour covers this fraction of the view is not an object.
+        connected: keep only the traced Gaussians connected in 3D to those under the click (step 4).
+        link_scale: two Gaussians are linked when their centres are closer than this many times the
+            median nearest-neighbour distance of the traced set.
         picture_views: training views the object is rendered from in ``object.png``.
         turntable_views, turntable_size: the ``turntable.png`` strip (views, pixels per side).
     """
@@ -69,6 +77,8 @@ class ExtractParams:
     stability_tolerance: float = 0.0
     min_region_pixels: int = 4
     max_region_fraction: float = 0.9
+    connected: bool = True
+    link_scale: float = 3.0
     picture_views: int = 6
     turntable_views: int = 8
     turntable_size: int = 128
@@ -81,6 +91,8 @@ class ExtractParams:
             raise ValueError(f"stability_tolerance must be >= 0, got {self.stability_tolerance}")
         if self.min_region_pixels < 1 or not 0.0 < self.max_region_fraction <= 1.0:
             raise ValueError("min_region_pixels must be >= 1 and max_region_fraction in (0, 1]")
+        if not self.link_scale > 0:
+            raise ValueError(f"link_scale must be > 0, got {self.link_scale}")
         if self.picture_views < 0 or self.turntable_views < 0 or self.turntable_size < 8:
             raise ValueError("picture_views and turntable_views must be >= 0 and turntable_size >= 8")
 
@@ -162,6 +174,35 @@ def grow_from_click(feature_map: np.ndarray, x: int, y: int, params: ExtractPara
     return ClickRegion(regions[best], float(thresholds[best]), float(best_score), thresholds, areas)
 
 
+def connected_to_seeds(means: np.ndarray, seeds: np.ndarray, link_scale: float) -> np.ndarray:
+    """[K] bool: the points of ``means`` [K, 3] chained to any of ``seeds`` [K] bool by links shorter than
+    ``link_scale`` times the median nearest-neighbour distance."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    count = len(means)
+    if count < 2 or not seeds.any():
+        return seeds.copy()
+    tree = cKDTree(means)
+    nearest = tree.query(means, k=2)[0][:, 1]
+    link = link_scale * float(np.median(nearest))
+    pairs = tree.query_pairs(link, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(count, count))
+    _, labels = connected_components(graph, directed=False)
+    return np.isin(labels, np.unique(labels[seeds]))
+
+
+def _gaussians_at(weights, x: int, y: int, radius: int = 1) -> np.ndarray:
+    """Indices of the Gaussians that blend into the pixels within ``radius`` of (x, y) of a view's full
+    :class:`~trace3d.render.pixel_weights.PixelWeights`."""
+    wanted = {yy * weights.width + xx for yy in range(y - radius, y + radius + 1)
+              for xx in range(x - radius, x + radius + 1) if 0 <= xx < weights.width and 0 <= yy < weights.height}
+    rows = np.flatnonzero(np.isin(weights.pixels, list(wanted)))
+    parts = [weights.indices[weights.indptr[r]: weights.indptr[r + 1]] for r in rows]
+    return np.unique(np.concatenate(parts)).astype(np.int64) if parts else np.zeros(0, np.int64)
+
+
 def _mark_click(image: np.ndarray, x: int, y: int) -> np.ndarray:
     out = image.copy()
     size = max(2, min(image.shape[:2]) // 30)
@@ -215,7 +256,19 @@ def run_extract(scene, poses_dir: Path | None, gaussians_dir: Path, lift_dir: Pa
     region = grow_from_click(feature_map, x, y, p)
     query = ObjectQuery(p.view, region.mask)
     points = lifted.query_points(query)
-    keep = np.asarray(lifted.object_gaussians(query), bool)
+    keep = np.asarray(lifted.object_gaussians(query), bool).copy()
+    traced = int(keep.sum())
+    if p.connected and keep.any():
+        under = _gaussians_at(lifted.train_weights()[train.index(camera)], x, y)
+        seeds = np.zeros(len(model), bool)
+        seeds[under] = True
+        seeds &= keep
+        if seeds.any():
+            kept = np.flatnonzero(keep)
+            linked = connected_to_seeds(model.means.detach().double().numpy()[kept], seeds[kept], p.link_scale)
+            keep[kept[~linked]] = False
+        else:
+            log.warning("extract: none of the traced Gaussians blends into the clicked pixel; all %d are kept", traced)
     if not keep.any():
         raise Trace3DError(f"extract: the region grown from ({x}, {y}) on {p.view} selects no Gaussian (a region of "
                            f"{int(region.mask.sum())} pixels); click inside an object.")
@@ -228,13 +281,14 @@ def run_extract(scene, poses_dir: Path | None, gaussians_dir: Path, lift_dir: Pa
     mask = points.mask(feature_map)
     panels = [_mark_click(image, x, y),
               _mark_click((overlay(image.astype(np.float32) / 255.0, mask) * 255 + 0.5).astype(np.uint8), x, y)]
-    picks = [train.index(camera)] if p.picture_views else []
-    if p.picture_views > 1 and len(train) > 1:
-        picks += [int(k) for k in np.linspace(0, len(train) - 1, p.picture_views).round() if int(k) not in picks]
+    # the training views that show the most of the object alone, the clicked view first
+    shown = []
+    for k, cam in enumerate(train):
+        rgb, alpha = render_alone(obj, cam)
+        shown.append((cam.name != p.view, -int((alpha > 0.5).sum()), k, rgb))
     renders = {}
-    for k in picks[: max(p.picture_views, 0)]:
-        rgb, alpha = render_alone(obj, train[k])
-        renders[train[k].name] = float((alpha > 0.5).sum())
+    for _, pixels, k, rgb in sorted(shown, key=lambda item: item[:3])[: p.picture_views]:
+        renders[train[k].name] = -pixels
         panels.append((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8))
     write_rgb(out_dir / "object.png", _tile(panels, max(96, camera.height)))
     if p.turntable_views:
@@ -244,7 +298,7 @@ def run_extract(scene, poses_dir: Path | None, gaussians_dir: Path, lift_dir: Pa
         "region_pixels": int(region.mask.sum()), "mask_pixels": int(mask.sum()),
         "query_points": points.pixels.tolist(), "query_thresholds": points.thresholds.tolist(),
         "reference_iou": float(points.ious[-1]) if len(points.ious) else None,
-        "gaussians": int(keep.sum()), "gaussians_total": int(len(model)),
+        "gaussians": int(keep.sum()), "gaussians_traced": traced, "gaussians_total": int(len(model)),
         "picture_views": list(renders), "params": to_dict(p), "lift": str(Path(lift_dir)),
         "seconds": time.perf_counter() - start,
     }
