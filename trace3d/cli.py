@@ -89,6 +89,10 @@ def _cmd_scene(args: argparse.Namespace) -> None:
             from .datasets import images
 
             images.import_images(source, tmp, images.params_from(params))
+        elif args.kind == "transforms":
+            from .datasets import transforms
+
+            transforms.import_transforms(source, tmp, transforms.params_from(params))
         elif args.kind == "canonical":
             from .scene import Scene
 
@@ -290,6 +294,23 @@ def _cmd_lift(args: argparse.Namespace) -> None:
                  Path(args.labels) if args.labels else None, tmp, params)
 
 
+def _cmd_extract(args: argparse.Namespace) -> None:
+    from .extract import parse_point, run_extract
+    from .io import atomic_dir
+    from .params import load_params_arg
+    from .scene import Scene
+
+    params = load_params_arg(args.params)
+    if args.view:
+        params["view"] = args.view
+    if args.point:
+        params["point"] = list(parse_point(args.point))
+    scene = Scene.read(args.scene)
+    with atomic_dir(args.out) as tmp:
+        run_extract(scene, Path(args.poses) if args.poses else None, Path(args.gaussians), Path(args.lift), tmp,
+                    params)
+
+
 def _parse_size(text: str) -> tuple[int, int]:
     parts = text.lower().split("x")
     if len(parts) != 2 or not all(p.isdigit() and int(p) > 0 for p in parts):
@@ -395,9 +416,10 @@ def build_parser() -> argparse.ArgumentParser:
     params_help = "parameter overrides: inline JSON/YAML mapping, or @file.yaml"
 
     p = sub.add_parser("scene", help="build a canonical scene folder (synthetic room or an importer)")
-    p.add_argument("kind", choices=["synthetic", "replica", "nvos", "llff", "canonical", "images"])
+    p.add_argument("kind", choices=["synthetic", "replica", "nvos", "llff", "canonical", "images", "transforms"])
     p.add_argument("--out", required=True, help="output scene folder")
-    p.add_argument("--source", help="data set folder (importers only; images: a folder of photos)")
+    p.add_argument("--source", help="data set folder (importers only; images: a folder of photos; transforms: "
+                                    "the folder of a transforms.json capture, or the .json file)")
     p.add_argument("--params", help=params_help)
     p.set_defaults(func=_cmd_scene)
 
@@ -518,6 +540,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.add_argument("--params", help=params_help + " (method: contrastive | self_prompt, preset: paper | official)")
     p.set_defaults(func=_cmd_lift)
+
+    p = sub.add_parser("extract", help="one object out by a click: its Gaussians (PLY) and renders, from a "
+                                       "contrastive lift")
+    p.add_argument("--scene", required=True)
+    p.add_argument("--poses", help="poses folder whose cameras the fitted scene lives with")
+    p.add_argument("--gaussians", required=True, help="the Gaussians the lifting used (point_cloud.ply)")
+    p.add_argument("--lift", required=True, help="contrastive lift folder (features.npy, lift.json)")
+    p.add_argument("--view", help="the training view clicked on (frame name)")
+    p.add_argument("--point", metavar="X,Y", help="the clicked pixel: column,row of the view's image (0-based)")
+    p.add_argument("--out", required=True, help="output folder: object.ply, object.png, turntable.png, extract.json")
+    p.add_argument("--params", help=params_help + " (view, point: [x, y], threshold_steps, ...; the flags win)")
+    p.set_defaults(func=_cmd_extract)
 
     p = sub.add_parser("summary", help="write the per-scene summary table (results/scenes.md)")
     p.add_argument("scenes", nargs="+", help="scene folders")

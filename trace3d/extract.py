@@ -1,0 +1,308 @@
+"""One object out by a click: ``trace3d extract --view V --point X,Y`` on a contrastively lifted scene.
+
+No reference mask is needed.  From the clicked pixel of training view V:
+
+1. render V's feature map F [H, W, D] (the lifted features, :class:`~trace3d.lifting.query.FeatureLifted`)
+   and take the clicked pixel's feature q;
+2. **grow** a region from the click: for thresholds t on an even grid of ``threshold_steps`` values in
+   (0, max ||F - q||], the region R(t) is the 4-connected component of {x : ||F(x) - q|| <= t} that
+   holds the click; the region kept is the most *stable* one (as MSER does for grey levels): the t
+   minimising the relative growth (|R(t + delta)| - |R(t - delta)|) / |R(t)| (delta =
+   ``stability_delta`` grid steps), among regions of at least ``min_region_pixels`` pixels whose grown
+   neighbour R(t + delta) covers less than ``max_region_fraction`` of the view (near-ties, within
+   ``stability_tolerance``, go to the widest run of thresholds).  Contrastive features
+   are nearly constant on an object and jump at its border, so the object is the region that stops
+   growing over the widest range of thresholds;
+3. that region is the reference mask of the paper's query (Sec. 3.5): the query points and their
+   thresholds come from :func:`~trace3d.lifting.query.find_query_points`, the object's masks at the
+   training views from those, and its Gaussians are traced from the masks
+   (:meth:`~trace3d.lifting.query.FeatureLifted.object_gaussians`) — the code the evaluation runs;
+4. an object is one piece: with ``connected`` (default), of the traced Gaussians only those linked in
+   3D (centres closer than ``link_scale`` times the set's median nearest-neighbour distance, chained)
+   to the Gaussians that blend into the clicked pixel (its 3x3 neighbourhood) are kept.  A view where
+   the object is absent can still pass the query's thresholds on another object's pixels, whose
+   Gaussians are then traced too; they are far from the click and are dropped here.
+
+Writes into ``out_dir``: ``object.ply`` (the object's Gaussians, the 3DGS/2DGS PLY layout of
+:meth:`~trace3d.gaussians.GaussianModel.write_ply`, which Gaussian-splat viewers open), ``object.png``
+(the clicked view with the click and the object's mask, then the object rendered alone from
+``picture_views`` training views, those that show most of it), ``turntable.png`` (the object alone from ``turntable_views``
+directions around it) and ``extract.json`` (the click, the chosen threshold, the region, the query
+points, the Gaussian count and the settings).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from .errors import ConfigError, Trace3DError
+from .io import write_json
+from .params import from_mapping, to_dict
+
+log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass
+class ExtractParams:
+    """Parameters of ``trace3d extract`` (``--params``; ``--view`` and ``--point`` override ``view`` and ``point``).
+
+    Attributes:
+        view: the training view clicked on (its frame name).
+        point: the clicked pixel (x, y): column and row of the view's image, 0-based (fractions are floored).
+        threshold_steps: thresholds tried when growing the region from the click.
+        stability_delta: grid steps on either side over which a region's growth is measured.
+        stability_tolerance: regions whose relative growth is within this of the most stable one's are
+            near-ties, decided by the widest run of thresholds (0: exact ties only).
+        min_region_pixels: smallest region that counts as an object.
+        max_region_fraction: a region whose grown neighbour covers this fraction of the view is not an object.
+        connected: keep only the traced Gaussians connected in 3D to those under the click (step 4).
+        link_scale: two Gaussians are linked when their centres are closer than this many times the
+            median nearest-neighbour distance of the traced set.
+        picture_views: training views the object is rendered from in ``object.png``.
+        turntable_views, turntable_size: the ``turntable.png`` strip (views, pixels per side).
+    """
+
+    view: str = ""
+    point: tuple[float, ...] = ()
+    threshold_steps: int = 64
+    stability_delta: int = 2
+    stability_tolerance: float = 0.0
+    min_region_pixels: int = 4
+    max_region_fraction: float = 0.9
+    connected: bool = True
+    link_scale: float = 3.0
+    picture_views: int = 6
+    turntable_views: int = 8
+    turntable_size: int = 128
+
+    def __post_init__(self) -> None:
+        if self.threshold_steps < 4 or not 1 <= self.stability_delta < self.threshold_steps // 2:
+            raise ValueError(f"threshold_steps must be >= 4 and stability_delta in [1, threshold_steps / 2), got "
+                             f"{self.threshold_steps}, {self.stability_delta}")
+        if self.stability_tolerance < 0:
+            raise ValueError(f"stability_tolerance must be >= 0, got {self.stability_tolerance}")
+        if self.min_region_pixels < 1 or not 0.0 < self.max_region_fraction <= 1.0:
+            raise ValueError("min_region_pixels must be >= 1 and max_region_fraction in (0, 1]")
+        if not self.link_scale > 0:
+            raise ValueError(f"link_scale must be > 0, got {self.link_scale}")
+        if self.picture_views < 0 or self.turntable_views < 0 or self.turntable_size < 8:
+            raise ValueError("picture_views and turntable_views must be >= 0 and turntable_size >= 8")
+
+
+def parse_point(text: str) -> tuple[float, float]:
+    """``"X,Y"`` -> (x, y)."""
+    parts = text.replace(" ", "").split(",")
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 2:
+        raise ConfigError(f"extract: --point must be two numbers X,Y (column, row), got {text!r}.")
+    return values  # type: ignore[return-value]
+
+
+@dataclasses.dataclass
+class ClickRegion:
+    """The region grown from a click: mask [H, W] bool, the threshold t on ||F - q||, its stability
+    score, and the region's size at every threshold of the grid (thresholds [S], areas [S])."""
+
+    mask: np.ndarray
+    threshold: float
+    stability: float
+    thresholds: np.ndarray
+    areas: np.ndarray
+
+
+def grow_from_click(feature_map: np.ndarray, x: int, y: int, params: ExtractParams | None = None) -> ClickRegion:
+    """The most stable region of the clicked pixel's feature (module docstring, step 2).
+
+    Args:
+        feature_map: [H, W, D] float32 rendered features; x, y: the clicked pixel (column, row).
+    """
+    from .lifting.query import query_distances
+
+    params = params or ExtractParams()
+    height, width = feature_map.shape[:2]
+    if not (0 <= x < width and 0 <= y < height):
+        raise ConfigError(f"extract: the point ({x}, {y}) lies outside the {width}x{height} view.")
+    q = np.ascontiguousarray(feature_map[y, x][None], dtype=np.float32)
+    dist = query_distances(np.ascontiguousarray(feature_map, dtype=np.float32), q)[0]
+    top = float(dist.max())
+    thresholds = (np.arange(1, params.threshold_steps + 1) * (top / params.threshold_steps)).astype(np.float32)
+    regions, areas = [], []
+    for t in thresholds:
+        _, comps = cv2.connectedComponents((dist <= t).astype(np.uint8), connectivity=4)
+        region = comps == comps[y, x]
+        regions.append(region)
+        areas.append(int(region.sum()))
+    areas = np.asarray(areas, np.int64)
+    delta, total = params.stability_delta, height * width
+    scores = np.full(len(thresholds), np.inf)
+    for k in range(delta, len(thresholds) - delta):
+        if areas[k] >= params.min_region_pixels and areas[k + delta] < params.max_region_fraction * total:
+            scores[k] = (areas[k + delta] - areas[k - delta]) / areas[k]
+    best, best_score = None, float(scores.min())
+    if np.isfinite(best_score):
+        # the most stable regions; among near-ties, the widest run of thresholds (a flat object with a
+        # blended border is stable both without and with its border ring: the wider plateau is the object)
+        near = scores <= best_score + params.stability_tolerance
+        runs, k = [], 0
+        while k < len(near):
+            if near[k]:
+                end = k
+                while end + 1 < len(near) and near[end + 1]:
+                    end += 1
+                runs.append((end - k + 1, -k, k, end))
+                k = end + 1
+            else:
+                k += 1
+        _, _, first, last = max(runs)
+        best = first + int(np.argmin(scores[first: last + 1]))
+        best_score = float(scores[best])
+    if best is None:
+        raise Trace3DError(f"extract: no object region grows from the point ({x}, {y}): every region is smaller than "
+                           f"{params.min_region_pixels} pixels or covers {params.max_region_fraction:.0%} of the "
+                           "view; click inside an object.")
+    return ClickRegion(regions[best], float(thresholds[best]), float(best_score), thresholds, areas)
+
+
+def connected_to_seeds(means: np.ndarray, seeds: np.ndarray, link_scale: float) -> np.ndarray:
+    """[K] bool: the points of ``means`` [K, 3] chained to any of ``seeds`` [K] bool by links shorter than
+    ``link_scale`` times the median nearest-neighbour distance."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    count = len(means)
+    if count < 2 or not seeds.any():
+        return seeds.copy()
+    tree = cKDTree(means)
+    nearest = tree.query(means, k=2)[0][:, 1]
+    link = link_scale * float(np.median(nearest))
+    pairs = tree.query_pairs(link, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(count, count))
+    _, labels = connected_components(graph, directed=False)
+    return np.isin(labels, np.unique(labels[seeds]))
+
+
+def _gaussians_at(weights, x: int, y: int, radius: int = 1) -> np.ndarray:
+    """Indices of the Gaussians that blend into the pixels within ``radius`` of (x, y) of a view's full
+    :class:`~trace3d.render.pixel_weights.PixelWeights`."""
+    wanted = {yy * weights.width + xx for yy in range(y - radius, y + radius + 1)
+              for xx in range(x - radius, x + radius + 1) if 0 <= xx < weights.width and 0 <= yy < weights.height}
+    rows = np.flatnonzero(np.isin(weights.pixels, list(wanted)))
+    parts = [weights.indices[weights.indptr[r]: weights.indptr[r + 1]] for r in rows]
+    return np.unique(np.concatenate(parts)).astype(np.int64) if parts else np.zeros(0, np.int64)
+
+
+def _mark_click(image: np.ndarray, x: int, y: int) -> np.ndarray:
+    out = image.copy()
+    size = max(2, min(image.shape[:2]) // 30)
+    color = np.array([255, 0, 255], np.uint8)
+    out[max(0, y - size): y + size + 1, x] = color
+    out[y, max(0, x - size): x + size + 1] = color
+    return out
+
+
+def _tile(images: list[np.ndarray], height: int) -> np.ndarray:
+    """Images side by side at one height (each resized, aspect kept), 2-pixel gaps."""
+    tiles = []
+    for image in images:
+        scale = height / image.shape[0]
+        width = max(1, round(image.shape[1] * scale))
+        tiles.append(cv2.resize(image, (width, height), interpolation=cv2.INTER_NEAREST))
+        tiles.append(np.full((height, 2, 3), 255, np.uint8))
+    return np.concatenate(tiles[:-1], axis=1)
+
+
+def run_extract(scene, poses_dir: Path | None, gaussians_dir: Path, lift_dir: Path, out_dir: Path,
+                params: dict) -> dict:
+    """Extract the clicked object of a contrastive lift into ``out_dir``; returns extract.json's content."""
+    from .evaluation.extraction import render_alone
+    from .evaluation.pictures import overlay, world_up, write_turntable
+    from .lifting import ObjectQuery, load_lifted
+    from .lifting.query import FeatureLifted
+    from .scene import write_rgb
+    from .tracing.git import load_fitted
+
+    p = from_mapping(ExtractParams, params, "extract params")
+    if not p.view:
+        raise ConfigError("extract: name the clicked training view (--view or params.view).")
+    if len(p.point) != 2:
+        raise ConfigError(f"extract: the point must be (x, y) (--point X,Y or params.point), got {list(p.point)}.")
+    start = time.perf_counter()
+    model, cameras = load_fitted(scene, poses_dir, gaussians_dir)
+    train = [c for c in cameras if c.split == "train"]
+    lifted = load_lifted(lift_dir, model, scene, train)
+    if not isinstance(lifted, FeatureLifted):
+        method = json.loads((Path(lift_dir) / "lift.json").read_text()).get("method")
+        raise Trace3DError(f"{lift_dir}: extract by a click needs a contrastive lift (features.npy); this lift's "
+                           f"method is {method!r}.")
+    by_name = {c.name: c for c in train}
+    if p.view not in by_name:
+        shown = ", ".join(sorted(by_name)[:6]) + (" ..." if len(by_name) > 6 else "")
+        raise ConfigError(f"extract: view {p.view!r} is not a training view of {scene.root} ({shown}).")
+    camera = by_name[p.view]
+    x, y = int(np.floor(p.point[0])), int(np.floor(p.point[1]))
+    feature_map = lifted.feature_map(camera)
+    region = grow_from_click(feature_map, x, y, p)
+    query = ObjectQuery(p.view, region.mask)
+    points = lifted.query_points(query)
+    keep = np.asarray(lifted.object_gaussians(query), bool).copy()
+    traced = int(keep.sum())
+    if p.connected and keep.any():
+        under = _gaussians_at(lifted.train_weights()[train.index(camera)], x, y)
+        seeds = np.zeros(len(model), bool)
+        seeds[under] = True
+        seeds &= keep
+        if seeds.any():
+            kept = np.flatnonzero(keep)
+            linked = connected_to_seeds(model.means.detach().double().numpy()[kept], seeds[kept], p.link_scale)
+            keep[kept[~linked]] = False
+        else:
+            log.warning("extract: none of the traced Gaussians blends into the clicked pixel; all %d are kept", traced)
+    if not keep.any():
+        raise Trace3DError(f"extract: the region grown from ({x}, {y}) on {p.view} selects no Gaussian (a region of "
+                           f"{int(region.mask.sum())} pixels); click inside an object.")
+    obj = model.subset(torch.from_numpy(keep))
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    obj.write_ply(out_dir / "object.ply")
+    # the picture: the clicked view with the click and the object's mask there, then the object alone
+    image = scene.image(p.view)
+    mask = points.mask(feature_map)
+    panels = [_mark_click(image, x, y),
+              _mark_click((overlay(image.astype(np.float32) / 255.0, mask) * 255 + 0.5).astype(np.uint8), x, y)]
+    # the training views that show the most of the object alone, the clicked view first
+    shown = []
+    for k, cam in enumerate(train):
+        rgb, alpha = render_alone(obj, cam)
+        shown.append((cam.name != p.view, -int((alpha > 0.5).sum()), k, rgb))
+    renders = {}
+    for _, pixels, k, rgb in sorted(shown, key=lambda item: item[:3])[: p.picture_views]:
+        renders[train[k].name] = -pixels
+        panels.append((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8))
+    write_rgb(out_dir / "object.png", _tile(panels, max(96, camera.height)))
+    if p.turntable_views:
+        write_turntable(out_dir / "turntable.png", obj, world_up(train), p.turntable_views, p.turntable_size)
+    info = {
+        "view": p.view, "point": [x, y], "threshold": region.threshold, "stability": region.stability,
+        "region_pixels": int(region.mask.sum()), "mask_pixels": int(mask.sum()),
+        "query_points": points.pixels.tolist(), "query_thresholds": points.thresholds.tolist(),
+        "reference_iou": float(points.ious[-1]) if len(points.ious) else None,
+        "gaussians": int(keep.sum()), "gaussians_traced": traced, "gaussians_total": int(len(model)),
+        "picture_views": list(renders), "params": to_dict(p), "lift": str(Path(lift_dir)),
+        "seconds": time.perf_counter() - start,
+    }
+    write_json(out_dir / "extract.json", info)
+    log.info("extract: (%d, %d) on %s -> a %d-pixel region (threshold %.3g), %d of %d Gaussians -> %s", x, y, p.view,
+             info["region_pixels"], region.threshold, info["gaussians"], len(model), out_dir / "object.ply")
+    return info
