@@ -448,6 +448,9 @@ def test_steps_are_deterministic_and_write_their_files(tiny_fitted, tmp_path):
     for name in ("ambiguous.png", "train.csv"):
         assert (a / "refine" / name).is_file()
     assert "before" in merge_a["ground_truth"] and "boundary" in refine_a
+    pairs = merge_a["ground_truth"]["pairs"]  # every should-merge pair is a candidate or out of reach
+    assert pairs["should_merge"] == pairs["candidates_should_merge"] + pairs["out_of_reach"]
+    assert sum(len(v["pairs_vs_truth"]["out_of_reach_pairs"]) for v in merge_a["per_view"]) == pairs["out_of_reach"]
     assert refine_a["test_psnr_before"] is not None and refine_a["split"] >= refine_a["rounds"][0]["split"]
 
 
