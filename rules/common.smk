@@ -228,7 +228,10 @@ def quoted_params(step):
 #   overlay: lift on each view's masks painted into one label per pixel (no patches, no merge, no
 #   refine: the EgoLifter-style baseline); it excludes consistent_masks and density_control.
 VARIANT_DEFAULTS = {"preset": "paper", "consistent_masks": True, "density_control": True, "lifting": "contrastive",
-                    "overlay": False}
+                    "overlay": False, "merge_candidates": "coarser_mask"}
+# merge_candidates: which patch pairs of a view the merge compares: those inside a common coarser mask
+# (the supplementary and the released code; folder merge-<preset>) or all pairs (the paper's main text;
+# folder merge-<preset>-all, refine-<preset>-mergedall).
 VARIANTS = {name: {**VARIANT_DEFAULTS, **(v or {})} for name, v in config.get("variants", {"full": {}}).items()}
 # A variant's own `lift:` settings (e.g. the self-prompting prompt source) join the scene's lift params.
 for _name, _v in VARIANTS.items():
@@ -282,7 +285,7 @@ def split_run(run):
 
 wildcard_constraints:
     preset="paper|official",
-    masks="merged|patches",
+    masks="merged|mergedall|patches",
     variant="(" + "|".join(VARIANTS) + r")(\.s[0-9]+)?",
 
 
@@ -314,14 +317,18 @@ def labels_dir(scene, v):
     if v["overlay"]:
         return f"{RESULTS}/{scene}/overlay"
     if v["consistent_masks"]:
-        return f"{RESULTS}/{scene}/merge-{v['preset']}"
+        return f"{RESULTS}/{scene}/merge-{v['preset']}{_all(v)}"
     return f"{RESULTS}/{scene}/patches"
+
+
+def _all(v):
+    return "-all" if v.get("merge_candidates") == "all_pairs" else ""
 
 
 def gaussians_dir(scene, v):
     """The Gaussians a variant's later stages use: refined, or the plain 2DGS fit."""
     if v["density_control"]:
-        masks = "merged" if v["consistent_masks"] else "patches"
+        masks = ("merged" + _all(v).lstrip("-")) if v["consistent_masks"] else "patches"
         return f"{RESULTS}/{scene}/refine-{v['preset']}-{masks}"
     return f"{RESULTS}/{base_scene(scene)}/gaussians"
 
@@ -345,18 +352,28 @@ def preset_params(step):
 def refine_labels(wildcards):
     if wildcards.masks == "merged":
         return f"{RESULTS}/{wildcards.scene}/merge-{wildcards.preset}"
+    if wildcards.masks == "mergedall":
+        return f"{RESULTS}/{wildcards.scene}/merge-{wildcards.preset}-all"
     return f"{RESULTS}/{wildcards.scene}/patches"
 
 
 def refine_labels_arg(wildcards):
     folder = refine_labels(wildcards)
-    return f"{folder}/instances" if wildcards.masks == "merged" else folder
+    return f"{folder}/instances" if wildcards.masks != "patches" else folder
+
+
+def merge_all_params(wildcards):
+    """The merge step's parameters for merge-<preset>-all: the preset's, comparing all pairs of a view."""
+    merged = json.loads(step_params(wildcards.scene, "merge"))
+    merged.setdefault("preset", wildcards.preset)
+    merged["candidates"] = "all_pairs"
+    return shlex.quote(json.dumps(merged, sort_keys=True))
 
 
 # The full method's (first variant with both stages on, else the first) merge and refine figures per scene.
 def table_variant():
     for name, v in VARIANTS.items():
-        if v["consistent_masks"] and v["density_control"]:
+        if v["consistent_masks"] and v["density_control"] and not _all(v):
             return v
     return None
 

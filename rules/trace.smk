@@ -53,6 +53,19 @@ rule merge:
         " --out {output} --params {params.p} > {log} 2>&1"
 
 
+# The same merge comparing every pair of patches of a view (variant merge_candidates: all_pairs).
+use rule merge as merge_all with:
+    output:
+        directory(f"{RESULTS}/{{scene}}/merge-{{preset}}-all"),
+    params:
+        p=merge_all_params,
+        code=code_version("scene.py", "tracing/__init__.py", "tracing/git.py", "tracing/merge.py", "masks"),
+    log:
+        f"{RESULTS}/logs/{{scene}}/merge-{{preset}}-all.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{scene}}/merge-{{preset}}-all.tsv"
+
+
 rule refine:
     input:
         scene=base_folder("scene"),

@@ -47,6 +47,8 @@ EFFECTS = (
     ("refine (merge on): full - no_refine", "full", "no_refine"),
     ("refine (merge off): no_merge - both_off", "no_merge", "both_off"),
     ("both: full - both_off", "full", "both_off"),
+    ("merge, all pairs (refine on): full_all - no_merge", "full_all", "no_merge"),
+    ("all pairs vs coarser mask: full_all - full", "full_all", "full"),
 )
 
 
