@@ -360,3 +360,23 @@ def test_study_config_mistakes_are_one_sentence(tmp_path, override, message):
     result = run_snakemake(tmp_path, "-n", "reproduce", config={**_study_config(), **override})
     assert result.returncode != 0
     assert message in result.stdout + result.stderr
+
+
+def test_all_pairs_variant_has_its_own_merge_and_refine(tmp_path):
+    """merge_candidates: all_pairs runs the merge with candidates all_pairs into merge-<preset>-all and
+    refines on those maps; the coarser-mask variants keep their folders."""
+    config = {"scenes": {"a": {"kind": "synthetic"}},
+              "variants": {"full": {}, "full_all": {"merge_candidates": "all_pairs"},
+                           "all_no_refine": {"merge_candidates": "all_pairs", "density_control": False}}}
+    result = run_snakemake(tmp_path, "-n", "-p", "reproduce", config=config)
+    assert result.returncode == 0, result.stderr[-3000:]
+    shells = [line[line.index("trace3d "):] for line in result.stdout.splitlines() if "trace3d --threads" in line]
+    merges = {line.split("--out ")[1].split()[0]: line for line in shells if " merge --scene" in line}
+    assert sorted(merges) == ["results/a/merge-paper", "results/a/merge-paper-all"]
+    assert '"candidates": "all_pairs"' in merges["results/a/merge-paper-all"]
+    assert "candidates" not in merges["results/a/merge-paper"]
+    lifts = {line.split("--out ")[1].split()[0]: line for line in shells if " lift --scene" in line}
+    assert ("--gaussians results/a/refine-paper-mergedall --labels results/a/merge-paper-all/instances "
+            in lifts["results/a/full_all/lift"])
+    assert "--labels results/a/merge-paper-all/instances " in lifts["results/a/all_no_refine/lift"]
+    assert "--gaussians results/a/refine-paper-merged " in lifts["results/a/full/lift"]
