@@ -85,3 +85,11 @@ def test_bad_spec_is_one_sentence(tmp_path):
         effects.collect({"runs": []})
     with pytest.raises(Trace3DError, match="lacks seed"):
         effects.collect({"runs": [{"room": "a", "masks": "default", "variant": "full", "eval": str(tmp_path)}]})
+
+
+def test_no_gap_share_where_exact_masks_do_not_help(spec):
+    """NVS mIoU is 0.8 for every run here: exact masks gain nothing, so no variant has a share of it."""
+    frame = effects.collect(spec)
+    summary, _ = effects.summarize(frame, spec["oracle"], spec["raw"])
+    full = summary[(summary.masks == "default") & (summary.variant == "full")].iloc[0]
+    assert math.isnan(full["NVS mIoU gap share"]) and not math.isnan(full["object mIoU gap share"])
