@@ -286,7 +286,7 @@ def split_run(run):
 wildcard_constraints:
     preset="paper|official",
     masks="merged|mergedall|patches",
-    variant="(" + "|".join(VARIANTS) + r")(\.s[0-9]+)?",
+    variant=f"({'|'.join(VARIANTS)})" r"(\.s[0-9]+)?",
 
 
 def variant(name):
@@ -328,7 +328,7 @@ def _all(v):
 def gaussians_dir(scene, v):
     """The Gaussians a variant's later stages use: refined, or the plain 2DGS fit."""
     if v["density_control"]:
-        masks = ("merged" + _all(v).lstrip("-")) if v["consistent_masks"] else "patches"
+        masks = f"merged{_all(v).lstrip('-')}" if v["consistent_masks"] else "patches"
         return f"{RESULTS}/{scene}/refine-{v['preset']}-{masks}"
     return f"{RESULTS}/{base_scene(scene)}/gaussians"
 
