@@ -76,13 +76,27 @@ def lift_classes() -> list[type]:
     return [type(parse_lift_params({"method": method})) for method in METHODS]
 
 
-def step_classes(step: str) -> list[type]:
-    """The dataclasses of a CLI step (for ``--help``); empty where the step takes no parameters."""
+def step_classes(step: str) -> list[tuple[str, type]]:
+    """(when it applies, dataclass) of a CLI step (for ``--help``); empty where the step takes no parameters."""
     if step == "masks":
-        return list(mask_sources().values())
+        return [(f"--source {source}", cls) for source, cls in mask_sources().items()]
     if step == "scene":
-        return _registry()["synthetic"] + _registry()["importer"]
-    return _registry().get(step, [])
+        from .datasets.images import ImagesParams
+        from .datasets.llff import LLFFParams
+        from .datasets.replica import ReplicaParams
+        from .datasets.synthetic.params import SyntheticParams
+
+        return [("synthetic", SyntheticParams), ("replica", ReplicaParams), ("nvos, llff", LLFFParams),
+                ("images", ImagesParams)]
+    if step == "lift":
+        return [(f"method: {type_name}", cls) for type_name, cls in zip(_lift_methods(), lift_classes())]
+    return [("", cls) for cls in _registry().get(step, [])]
+
+
+def _lift_methods() -> tuple[str, ...]:
+    from .lifting.step import METHODS
+
+    return METHODS
 
 
 def _nested() -> dict[tuple[type, str], type]:
@@ -200,11 +214,11 @@ def describe(cls: type) -> list[dict]:
 def help_text(step: str) -> str:
     """The parameter list of ``trace3d <step> --help`` (empty when the step takes none)."""
     parts = []
-    for cls in step_classes(step):
+    for when, cls in step_classes(step):
         rows = describe(cls)
         if not rows:
             continue
-        parts.append(f"{cls.__name__} (--params keys; null: the preset's value):")
+        parts.append(f"{cls.__name__}" + (f" ({when})" if when else "") + ":")
         for row in rows:
             default = json.dumps(row["default"])
             line = f"  {row['name']} = {default}"

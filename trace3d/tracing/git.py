@@ -138,11 +138,14 @@ class TraceParams:
             self.statistic = "weights" if self.preset == "paper" else "pixels"
 
 
-def load_label_maps(folder: Path, frames: Sequence[str], what: str) -> list[np.ndarray]:
-    """The 16-bit label maps ``folder/<frame>.png`` of ``frames``."""
+def load_label_maps(folder: Path, frames: Sequence[str], what: str,
+                    sizes: Sequence[tuple[int, int]] | None = None) -> list[np.ndarray]:
+    """The 16-bit label maps ``folder/<frame>.png`` of ``frames``; each must be its view's
+    (width, height) from ``sizes`` when given (a map of another size would be read at the wrong pixels)."""
     from ..scene import read_u16
 
-    return [read_u16(Path(folder) / f"{f}.png", what).astype(np.int64) for f in frames]
+    sizes = list(sizes) if sizes is not None else [None] * len(frames)
+    return [read_u16(Path(folder) / f"{f}.png", what, size).astype(np.int64) for f, size in zip(frames, sizes)]
 
 
 def load_fitted(scene, poses_dir: Path | None, gaussians_dir: Path) -> tuple[GaussianModel, list[Camera]]:
@@ -169,7 +172,7 @@ def run_trace(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Pa
     p = from_mapping(TraceParams, params, "trace params")
     model, cameras = load_fitted(scene, poses_dir, gaussians_dir)
     train = [c for c in cameras if c.split == "train"]
-    maps = load_label_maps(labels_dir, [c.name for c in train], "label map")
+    maps = load_label_maps(labels_dir, [c.name for c in train], "label map", [(c.width, c.height) for c in train])
     start = time.perf_counter()
     stats = trace_views(model, train, maps, count_pixels=p.statistic == "pixels", near=p.near, progress=True)
     seconds = time.perf_counter() - start

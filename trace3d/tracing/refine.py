@@ -110,6 +110,10 @@ class RefineParams:
                              "checked; set final_prune: false with it")
         if self.iterations < 1 or any(d < 0 for d in self.detect_at):
             raise ValueError(f"iterations must be >= 1 and detect_at >= 0, got {self.iterations}, {self.detect_at}")
+        late = [d for d in self.detect_at if d > self.iterations]
+        if late:
+            raise ValueError(f"detect_at {late} lies after the last iteration ({self.iterations}, both on the 30k "
+                             f"scale); lower detect_at or raise iterations")
         if not self.schedule_scale > 0:
             raise ValueError(f"schedule_scale must be > 0, got {self.schedule_scale}")
 
@@ -347,7 +351,7 @@ def run_refine(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: P
     extent = float(fit_config.get("extent", 1.0))
     train = [c for c in cameras if c.split == "train"]
     test = [c for c in cameras if c.split == "test"]
-    maps = load_label_maps(labels_dir, [c.name for c in train], "instance map")
+    maps = load_label_maps(labels_dir, [c.name for c in train], "instance map", [(c.width, c.height) for c in train])
     images = load_images(scene, train)
     test_images = load_images(scene, test)
     background = torch.tensor(train_params.background, dtype=torch.float32)
