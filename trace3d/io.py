@@ -84,11 +84,11 @@ def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
     for stale in remove_stale_siblings(final):
         logging.getLogger(__name__).info("removed %s, left by a killed run", stale)
     tmp = _tmp_sibling(final)
-    tmp.mkdir()
     names = {str(tmp.resolve()): str(final.resolve()), str(tmp): str(final),
              os.path.relpath(tmp): os.path.relpath(final)}
     _PENDING.update(names)
     try:
+        tmp.mkdir()  # inside the try: an interruption right after it still removes the folder
         yield tmp
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
