@@ -655,3 +655,74 @@ def test_killed_step_reruns_to_the_same_bytes(world):
         assert folder_bytes(out) == expected
         assert not list(out.parent.glob(f".{out.name}.tmp-*")), "a stale temporary folder was left"
     assert kills >= 1, "no kill landed inside the step"
+
+
+# ----------------------------------------------------------------------------------------------
+# the first run: a notice before compiling, an ETA without the compile, logs naming final paths
+# ----------------------------------------------------------------------------------------------
+
+def test_compile_notice_and_eta_leave_out_the_compile(caplog, monkeypatch):
+    from tqdm import tqdm
+
+    from trace3d import compiling
+
+    monkeypatch.setattr(compiling, "_state", {"installed": True, "announced": False, "depth": 0, "start": 0.0,
+                                              "seconds": 0.0})
+    bar = compiling.track(tqdm(range(10), disable=False, file=open(os.devnull, "w")))
+    start, last = bar.start_t, bar.last_print_t
+    with caplog.at_level("INFO", logger="trace3d"):
+        compiling._on_start()
+        compiling._on_start()  # a nested compile (an inlined kernel) is part of the outer one
+        time.sleep(0.2)
+        compiling._on_end()
+        compiling._on_end()
+        compiling._on_start()
+        compiling._on_end()
+    notices = [r.getMessage() for r in caplog.records if "compiling kernels" in r.getMessage()]
+    assert len(notices) == 1 and notices[0].startswith("compiling kernels (first run only, about 3 min")
+    assert compiling.compile_seconds() >= 0.2
+    assert bar.start_t - start >= 0.2 and bar.last_print_t - last >= 0.2  # the bar's clock skips the compile
+    assert abs((bar.start_t - start) - compiling.compile_seconds()) < 1e-6
+    bar.close()
+
+
+def test_logs_name_the_final_paths(tmp_path):
+    """A message logged inside a step that names the temporary folder names the final folder instead."""
+    import logging
+
+    from trace3d.io import TempPathFilter, atomic_dir
+
+    record_text = []
+
+    class Keep(logging.Handler):
+        def emit(self, record):
+            record_text.append(record.getMessage())
+
+    handler = Keep()
+    handler.addFilter(TempPathFilter())
+    logger = logging.getLogger("trace3d.test_paths")
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    try:
+        with atomic_dir(tmp_path / "poses") as tmp:
+            logger.info("wrote %s", tmp / "cameras.json")
+    finally:
+        logger.removeHandler(handler)
+    assert record_text == [f"wrote {tmp_path / 'poses' / 'cameras.json'}"]
+
+
+def test_stale_temporary_siblings_of_dead_runs_are_removed(tmp_path):
+    from trace3d.io import atomic_dir
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True).stdout.strip()
+    stale = tmp_path / f".out.tmp-{dead}-0123abcd"
+    (stale / "half").mkdir(parents=True)
+    alive = tmp_path / f".out.tmp-{os.getppid()}-0123abcd"  # a running process's folder is left alone
+    alive.mkdir()
+    other = tmp_path / f".other.tmp-{dead}-0123abcd"  # another step's
+    other.mkdir()
+    with atomic_dir(tmp_path / "out") as tmp:
+        (tmp / "x").write_text("1")
+    assert not stale.exists() and alive.exists() and other.exists()
+    assert (tmp_path / "out" / "x").read_text() == "1"

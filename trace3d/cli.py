@@ -23,6 +23,8 @@ log = logging.getLogger("trace3d")
 # fast step: five numba regions in about 2.5 ms): there, waking sleeping workers for every region
 # costs about 45 us each, so their workers spin for about half a millisecond before sleeping.
 SPIN_COMMANDS = {("lift", None), ("bench", "lift"), ("bench", "lift-forms")}
+# Commands that run no numba kernel: no compile listener (trace3d.compiling), so no numba import.
+NO_KERNEL_COMMANDS = {"tables", "robustness", "summary", "reconstruction-table", "tracing-table"}
 
 
 def _entry_point_environment() -> None:
@@ -646,7 +648,13 @@ def main(argv: list[str] | None = None) -> int:
         previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         with limit_threads(args.threads):
+            if args.command not in NO_KERNEL_COMMANDS:
+                from .compiling import compile_seconds, install
+
+                install()
             args.func(args)
+            if args.command not in NO_KERNEL_COMMANDS and compile_seconds() > 0:
+                log.info("compiled kernels for %.1f min (cached for later runs)", compile_seconds() / 60)
     except Trace3DError as exc:
         sentence = " ".join(str(exc).split())  # one line, whatever a wrapped library message held
         print(f"trace3d {args.command}: error: {sentence}", file=sys.stderr)

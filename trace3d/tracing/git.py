@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from ..compiling import track as track_compile_time
 from ..errors import SceneFormatError
 from ..gaussians import GaussianModel
 from ..scene import Camera
@@ -105,6 +106,7 @@ def trace_views(model: GaussianModel, cameras: Sequence[Camera], label_maps: Seq
     num_labels = np.zeros(views, np.int64)
     bar = tqdm(list(zip(cameras, label_maps)), desc="GIT trace", disable=not progress, leave=False,
                mininterval=0.5 if sys.stderr.isatty() else 30.0)  # log files get a line every 30 s
+    track_compile_time(bar)  # the ETA leaves out a first run's kernel compilation
     for v, (cam, labels) in enumerate(bar):
         labels_t = torch.from_numpy(np.asarray(labels).astype(np.int64))
         t = int(labels_t.max()) + 1 if labels_t.numel() else 1

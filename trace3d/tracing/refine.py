@@ -329,6 +329,11 @@ def retrain_params(fit_config: dict, p: RefineParams):
     return from_mapping(TrainParams, values, "refine params.train")
 
 
+def _db(value) -> str:
+    """A PSNR for the log: two decimals (the JSON keeps every digit), n/a without test views."""
+    return "n/a" if value is None else f"{float(value):.2f}"
+
+
 def run_refine(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Path, out_dir: Path,
                params: dict) -> dict:
     """The ``refine`` step: GIT-guided density control while retraining the fitted scene on the
@@ -412,8 +417,8 @@ def run_refine(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: P
         plot_ambiguous(out_dir / "ambiguous.png", model, ambiguous0, refined, ambiguous1, train, images, bands,
                        train_params, p.highlight_views)
     write_json(out_dir / "refine.json", report)
-    log.info("refine: %d -> %d Gaussians, ambiguous %d -> %d, test PSNR %s -> %s", len(model), len(refined),
-             int(ambiguous0.sum()), int(ambiguous1.sum()), report["test_psnr_before"], report["test_psnr_after"])
+    log.info("refine: %d -> %d Gaussians, ambiguous %d -> %d, test PSNR %s -> %s dB", len(model), len(refined),
+             int(ambiguous0.sum()), int(ambiguous1.sum()), _db(report["test_psnr_before"]), _db(report["test_psnr_after"]))
     return report
 
 
