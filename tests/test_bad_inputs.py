@@ -526,8 +526,9 @@ def test_schema_covers_every_dataclass_field():
         fields = {f.name for cls in classes for f in dataclasses.fields(cls)} - set(WORKFLOW_SET.get(step, ()))
         assert set(defs[step]["properties"]) == fields, step
         assert defs[step]["additionalProperties"] is False
-    for source, cls in mask_sources().items():
-        assert set(defs["masks"]["properties"][source]["properties"]) == {f.name for f in dataclasses.fields(cls)}
+    for source, classes in mask_sources().items():
+        fields = {f.name for cls in classes for f in dataclasses.fields(cls)}
+        assert set(defs["masks"]["properties"][source]["properties"]) == fields, source
     # every step section of the config refers to the generated definitions
     config_schema = yaml.safe_load((REPO / "workflow" / "schemas" / "config.schema.yaml").read_text())
     for where in (config_schema["properties"]["defaults"]["properties"], config_schema["$defs"]["scene"]["properties"]):

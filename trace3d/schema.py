@@ -29,10 +29,11 @@ from typing import Any, Literal
 
 SCHEMA_PATH = Path(__file__).resolve().parent.parent / "workflow" / "schemas" / "steps.schema.yaml"
 
-# Defaults the lift schema has filled into configs (Snakemake's validate writes a property's
-# `default` into the config): kept so that existing results' rule parameters stay the same. No other
-# step property carries a `default`: a value the user did not write is the library's to choose.
-FILLED_DEFAULTS = {"lift": {"pool_pixels": 8192, "path": "sparse", "seed": 0, "prompt_source": "simulated"}}
+# Defaults the hand-written schema filled into configs (Snakemake's validate writes a property's
+# `default` into the config when the mapping holding it is present), by the config path of that
+# mapping: kept so that existing results' rule parameters stay the same. No other step property carries
+# a `default`: a value the user did not write is the library's to choose.
+FILLED_DEFAULTS = {("lift",): {"pool_pixels": 8192, "path": "sparse", "seed": 0, "prompt_source": "simulated"}}
 
 
 def _registry() -> dict[str, list[type]]:
@@ -63,11 +64,21 @@ def _registry() -> dict[str, list[type]]:
     }
 
 
-def mask_sources() -> dict[str, type]:
-    """Mask source name -> its parameter dataclass (from :data:`trace3d.masks.SOURCES`)."""
-    from .masks import SOURCES, parse_params
+def mask_sources() -> dict[str, list[type]]:
+    """Mask source name -> its parameter dataclasses (from :data:`trace3d.masks.SOURCES`; several where a
+    ``model`` key picks the dataclass, as ``trace3d.masks.SIMULATED_MODELS`` does for the simulated source)."""
+    from . import masks
 
-    return {source: type(parse_params(source, None)) for source in SOURCES}
+    out = {}
+    for source in masks.SOURCES:
+        classes = [type(masks.parse_params(source, None))]
+        models = getattr(masks, f"{source.upper()}_MODELS", ())
+        for model in models:
+            cls = type(masks.parse_params(source, {"model": model}))
+            if cls not in classes:
+                classes.append(cls)
+        out[source] = classes
+    return out
 
 
 def lift_classes() -> list[type]:
@@ -79,7 +90,7 @@ def lift_classes() -> list[type]:
 def step_classes(step: str) -> list[tuple[str, type]]:
     """(when it applies, dataclass) of a CLI step (for ``--help``); empty where the step takes no parameters."""
     if step == "masks":
-        return [(f"--source {source}", cls) for source, cls in mask_sources().items()]
+        return [(f"--source {source}", cls) for source, classes in mask_sources().items() for cls in classes]
     if step == "scene":
         from .datasets.images import ImagesParams
         from .datasets.llff import LLFFParams
@@ -270,11 +281,13 @@ def type_schema(annotation: Any) -> dict:
     return {}
 
 
-def dataclass_schema(classes: list[type], drop: tuple[str, ...] = (), filled: dict | None = None) -> dict:
-    """A closed object schema holding the fields of ``classes`` (a key of any one of them is allowed).
+def dataclass_schema(classes: list[type], drop: tuple[str, ...] = (), path: tuple[str, ...] = ()) -> dict:
+    """A closed object schema holding the fields of ``classes`` (a key of any one of them is allowed);
+    ``path`` is where the mapping sits in a step section (for :data:`FILLED_DEFAULTS`).
 
     ``propertyNames`` lists the known keys, so that a misspelled key's error message names them all.
     """
+    filled = FILLED_DEFAULTS.get(path)
     nested = _nested()
     collected: dict[str, list[tuple[dict, str]]] = {}
     for cls in classes:
@@ -284,7 +297,7 @@ def dataclass_schema(classes: list[type], drop: tuple[str, ...] = (), filled: di
             if f.name in drop:
                 continue
             if (cls, f.name) in nested:
-                schema = dataclass_schema([nested[(cls, f.name)]])
+                schema = dataclass_schema([nested[(cls, f.name)]], path=path + (f.name,))
             else:
                 schema = type_schema(hints[f.name])
             default = _default(f)
@@ -311,14 +324,15 @@ def step_schemas() -> dict:
     """The ``$defs`` of ``steps.schema.yaml``: one closed object schema per config step section."""
     defs = {}
     for step, classes in _registry().items():
-        defs[step] = dataclass_schema(classes, drop=WORKFLOW_SET.get(step, ()), filled=FILLED_DEFAULTS.get(step))
+        defs[step] = dataclass_schema(classes, drop=WORKFLOW_SET.get(step, ()), path=(step,))
         defs[step]["description"] = (f"parameters of the {step} step ({', '.join(c.__name__ for c in classes)}); "
                                      f"a key not listed here is refused")
     sources = mask_sources()
     masks = {"source": {"enum": list(sources), "description": "where the 2D masks come from"}}
-    for source, cls in sources.items():
-        masks[source] = dataclass_schema([cls])
-        masks[source]["description"] = f"parameters of the {source} mask source ({cls.__name__})"
+    for source, classes in sources.items():
+        masks[source] = dataclass_schema(classes, path=("masks", source))
+        masks[source]["description"] = (f"parameters of the {source} mask source "
+                                        f"({', '.join(c.__name__ for c in classes)})")
     defs["masks"] = {"type": "object", "description": "the 2D masks: the source and each source's parameters",
                      "propertyNames": {"enum": sorted(masks)}, "additionalProperties": False, "properties": masks}
     return defs
