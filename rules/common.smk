@@ -4,9 +4,11 @@ import json
 import os
 import re
 import shlex
+import shutil
 from pathlib import Path
 
 import yaml
+from snakemake.logging import logger
 from snakemake.utils import validate
 
 
@@ -56,6 +58,21 @@ if not getattr(_snakemake_fmt.fmt_iofile, "_trace3d_accepts_str", False):
 
     _fmt_iofile_or_str._trace3d_accepts_str = True
     _snakemake_fmt.fmt_iofile = _fmt_iofile_or_str
+
+
+# Every job runs `trace3d`: without it on PATH each would fail with "command not found" in its log.
+def _trace3d_missing():
+    from snakemake_interface_executor_plugins.settings import DeploymentMethod
+
+    if DeploymentMethod.CONDA in workflow.deployment_settings.deployment_method:
+        return False  # the jobs' conda environment (workflow/envs/trace3d.yaml) provides it
+    return shutil.which("trace3d") is None
+
+
+if _trace3d_missing():
+    logger.warning("The trace3d command is not on PATH, so every job would fail with 'trace3d: command not found': "
+                   "activate the environment first (source .venv/bin/activate, after `make setup`), use "
+                   "`make reproduce`, or run with --use-conda.")
 
 
 validate(config, schema="../workflow/schemas/config.schema.yaml")

@@ -583,6 +583,18 @@ def test_dry_run_refuses_in_one_sentence(tmp_path, config_text, targets, phrases
     assert not (tmp_path / "results").exists()
 
 
+@pytest.mark.skipif(SNAKEMAKE is None, reason="snakemake is not installed")
+def test_missing_trace3d_command_is_named_before_any_job(tmp_path):
+    """Snakemake run without the environment active: a warning up front, not 'command not found' in every log."""
+    (tmp_path / "config.yaml").write_text("scenes:\n  a: {kind: synthetic}\n")
+    env = dict(os.environ, PATH="/usr/bin:/bin")
+    result = subprocess.run([SNAKEMAKE, "-s", str(REPO / "Snakefile"), "--directory", str(tmp_path), "-n",
+                             "--configfile", str(tmp_path / "config.yaml")], capture_output=True, text=True, env=env,
+                            timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert "The trace3d command is not on PATH" in result.stdout + result.stderr
+
+
 # ----------------------------------------------------------------------------------------------
 # interruptions: Ctrl-C in one line; a killed step leaves nothing stale and its rerun the same bytes
 # ----------------------------------------------------------------------------------------------
