@@ -97,8 +97,7 @@ os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(workflow.basedir) / ".numba_ca
 
 # Library files every step runs (the CLI and the CPU target it chooses, atomic writing, parameter parsing, the
 # camera geometry that scene.py and gaussians.py import): part of every code version.
-COMMON_CODE = ("cli.py", "io.py", "params.py", "errors.py", "threads.py", "__init__.py", "geometry.py", "cputarget.py",
-               "compiling.py")
+COMMON_CODE = ("cli.py", "io.py", "params.py", "errors.py", "threads.py", "__init__.py", "geometry.py", "cputarget.py", "compiling.py")
 
 
 # Scenes read from a data set need their folder before any job starts: one sentence, not a failed job.
