@@ -397,8 +397,9 @@ class Scene:
 
     def instances(self, name: str) -> np.ndarray:
         """[H, W] uint16 ground-truth instance ids (leaf level)."""
-        cam = self.camera(name)
-        return read_u16(self.instances_path(name), "instance map", (cam.width, cam.height))
+        cam = next((c for c in self.cameras if c.name == name), None)
+        size = (cam.width, cam.height) if cam is not None else None  # a map at the wrong pixels is refused
+        return read_u16(self.instances_path(name), "instance map", size)
 
     def depth(self, name: str) -> np.ndarray:
         """[H, W] float32 depth along the optical axis in scene units; 0 where invalid."""
