@@ -24,7 +24,7 @@ $(STAMP): requirements.txt pyproject.toml
 
 # The HTML report (tables, plots, captions) is written after the run, from what the run produced.
 reproduce: $(STAMP)
-	$(BIN)/snakemake --cores $(CORES) reproduce
+	$(BIN)/snakemake --cores $(CORES) --show-failed-logs reproduce
 	$(BIN)/snakemake --cores 1 reproduce --report results/report.html
 
 test: $(STAMP)

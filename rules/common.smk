@@ -4,9 +4,75 @@ import json
 import os
 import re
 import shlex
+import shutil
 from pathlib import Path
 
+import yaml
+from snakemake.logging import logger
 from snakemake.utils import validate
+
+
+# --- checks made before the config is used: one sentence instead of a traceback -----------------
+def _duplicate_key(path):
+    """The first key given twice in one mapping of the YAML file ``path`` (PyYAML keeps the last one
+    silently), as a sentence; None when there is none."""
+    with open(path) as fh:
+        try:
+            root = yaml.compose(fh, Loader=yaml.SafeLoader)
+        except yaml.YAMLError:
+            return None  # Snakemake reports a malformed file itself
+    stack = [root] if root is not None else []
+    while stack:
+        node = stack.pop()
+        if isinstance(node, yaml.MappingNode):
+            seen = {}
+            for key, value in node.value:
+                if isinstance(key, yaml.ScalarNode):
+                    line = key.start_mark.line + 1
+                    if key.value in seen:
+                        return (f"config {path}: key '{key.value}' appears twice in one mapping (lines "
+                                f"{seen[key.value]} and {line}); YAML would silently keep the second, so keep one.")
+                    seen[key.value] = line
+                stack.append(value)
+        elif isinstance(node, yaml.SequenceNode):
+            stack.extend(node.value)
+    return None
+
+
+for _path in map(str, workflow.configfiles):
+    if os.path.isfile(_path) and (_message := _duplicate_key(_path)):
+        raise ValueError(_message)
+
+
+# Snakemake 9.14.5 crashes with "AttributeError - 'str' object has no attribute 'is_storage'" on a
+# target that nothing produces (a misspelled scene or variant): its MissingRuleException formats the
+# command-line target, a plain string, with snakemake.io.fmt.fmt_iofile, which expects an IOFile.
+# Formatting plain strings as themselves restores its ordinary "No rule to produce <target>" message.
+import snakemake.io.fmt as _snakemake_fmt
+
+if not getattr(_snakemake_fmt.fmt_iofile, "_trace3d_accepts_str", False):
+    _fmt_iofile = _snakemake_fmt.fmt_iofile
+
+    def _fmt_iofile_or_str(f, *args, **kwargs):
+        return _fmt_iofile(f, *args, **kwargs) if hasattr(f, "is_storage") else str(f)
+
+    _fmt_iofile_or_str._trace3d_accepts_str = True
+    _snakemake_fmt.fmt_iofile = _fmt_iofile_or_str
+
+
+# Every job runs `trace3d`: without it on PATH each would fail with "command not found" in its log.
+def _trace3d_missing():
+    from snakemake_interface_executor_plugins.settings import DeploymentMethod
+
+    if DeploymentMethod.CONDA in workflow.deployment_settings.deployment_method:
+        return False  # the jobs' conda environment (workflow/envs/trace3d.yaml) provides it
+    return shutil.which("trace3d") is None
+
+
+if _trace3d_missing():
+    logger.warning("The trace3d command is not on PATH, so every job would fail with 'trace3d: command not found': "
+                   "activate the environment first (source .venv/bin/activate, after `make setup`), use "
+                   "`make reproduce`, or run with --use-conda.")
 
 
 validate(config, schema="../workflow/schemas/config.schema.yaml")
@@ -31,7 +97,7 @@ os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(workflow.basedir) / ".numba_ca
 
 # Library files every step runs (the CLI and the CPU target it chooses, atomic writing, parameter parsing, the
 # camera geometry that scene.py and gaussians.py import): part of every code version.
-COMMON_CODE = ("cli.py", "io.py", "params.py", "errors.py", "threads.py", "__init__.py", "geometry.py", "cputarget.py")
+COMMON_CODE = ("cli.py", "io.py", "params.py", "errors.py", "threads.py", "__init__.py", "geometry.py", "cputarget.py", "compiling.py")
 
 
 # Scenes read from a data set need their folder before any job starts: one sentence, not a failed job.

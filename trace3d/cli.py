@@ -23,6 +23,8 @@ log = logging.getLogger("trace3d")
 # fast step: five numba regions in about 2.5 ms): there, waking sleeping workers for every region
 # costs about 45 us each, so their workers spin for about half a millisecond before sleeping.
 SPIN_COMMANDS = {("lift", None), ("bench", "lift"), ("bench", "lift-forms")}
+# Commands that run no numba kernel: no compile listener (trace3d.compiling), so no numba import.
+NO_KERNEL_COMMANDS = {"tables", "robustness", "summary", "reconstruction-table", "tracing-table"}
 
 
 def _entry_point_environment() -> None:
@@ -204,25 +206,54 @@ def _cmd_trace(args: argparse.Namespace) -> None:
 
 def _cmd_merge(args: argparse.Namespace) -> None:
     from .io import atomic_dir
-    from .params import load_params_arg
+    from .params import from_mapping, load_params_arg
     from .scene import Scene
-    from .tracing.merge import run_merge
+    from .tracing.merge import MergeParams, run_merge
 
+    params = load_params_arg(args.params)
+    from_mapping(MergeParams, params, "merge params")  # refuse bad parameters before reading anything heavy
     scene = Scene.read(args.scene)
+    _check_patch_maps(scene, Path(args.git), Path(args.patches))
     with atomic_dir(args.out) as tmp:
-        run_merge(scene, Path(args.git), Path(args.patches), tmp, load_params_arg(args.params))
+        run_merge(scene, Path(args.git), Path(args.patches), tmp, params)
+
+
+def _check_patch_maps(scene, git_dir: Path, patches_dir: Path) -> None:
+    """The merge's inputs agree with the scene: every traced view's patch map has its image's size, and
+    some view has a patch (with none, there is nothing to merge)."""
+    import numpy as np
+
+    from .scene import read_u16
+    from .tracing.git import GITStats
+
+    stats = GITStats.load(git_dir / "git.npz")
+    known = {c.name: c for c in scene.cameras}
+    any_patch = False
+    for frame in stats.frames:
+        if frame not in known:
+            raise Trace3DError(f"{git_dir / 'git.npz'}: traced view '{frame}' is not a view of the scene "
+                               f"{scene.root}; rerun the trace step on this scene.")
+        cam = known[frame]
+        patch_map = read_u16(patches_dir / f"{frame}.png", "patch map", (cam.width, cam.height))
+        any_patch = any_patch or bool(np.any(patch_map))
+    if stats.frames and not any_patch:
+        raise Trace3DError(f"{patches_dir}: no view has a patch (every patch map is empty), so there is nothing "
+                           f"to merge; check the masks step's output.")
 
 
 def _cmd_refine(args: argparse.Namespace) -> None:
     from .io import atomic_dir
     from .params import load_params_arg
     from .scene import Scene
-    from .tracing.refine import run_refine
+    from .params import from_mapping
+    from .tracing.refine import RefineParams, run_refine
 
+    params = load_params_arg(args.params)
+    from_mapping(RefineParams, params, "refine params")  # refuse bad parameters before reading anything heavy
     scene = Scene.read(args.scene)
     with atomic_dir(args.out) as tmp:
         run_refine(scene, Path(args.poses) if args.poses else None, Path(args.gaussians), Path(args.labels), tmp,
-                   load_params_arg(args.params))
+                   params)
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> None:
@@ -231,11 +262,36 @@ def _cmd_evaluate(args: argparse.Namespace) -> None:
     from .params import load_params_arg
 
     label = _json_arg(args.label, "--label")
+    params = load_params_arg(args.params)
+    _check_evaluate_inputs(Path(args.scene), Path(args.lift), params)
     with contextlib.ExitStack() as stack:
         tmp = stack.enter_context(atomic_dir(args.out))
         objects = stack.enter_context(atomic_dir(args.objects)) if args.objects else None
         run_evaluate(Path(args.scene), Path(args.poses) if args.poses else None, Path(args.gaussians), Path(args.lift),
-                     tmp, load_params_arg(args.params), label, objects_dir=objects)
+                     tmp, params, label, objects_dir=objects)
+
+
+def _check_evaluate_inputs(scene_dir: Path, lift_dir: Path, params: dict) -> None:
+    """Refuse bad evaluate parameters, a scene without ground truth and object ids the scene does not
+    have before the lifted scene is loaded."""
+    from .evaluation.params import EvaluateParams
+    from .params import from_mapping
+    from .scene import Scene
+
+    p = from_mapping(EvaluateParams, params, "evaluate params")
+    scene = Scene.read(scene_dir)
+    if scene.objects is None or not scene.has_instances:
+        raise Trace3DError(f"{scene_dir}: evaluation needs ground truth (objects.json and instances/), which this "
+                           f"scene lacks; evaluate scenes from the synthetic or replica importers.")
+    if p.objects is not None:
+        unknown = sorted(set(p.objects) - set(scene.objects.by_id))
+        if unknown:
+            ids = sorted(scene.objects.by_id)
+            has = f"ids {ids[0]} to {ids[-1]}" if ids else "no objects"
+            raise Trace3DError(f"evaluate params.objects: ids {unknown[:5]} are not objects of the scene {scene_dir} "
+                               f"(its objects.json has {has}); use ids from that file.")
+    if not (lift_dir / "lift.json").is_file():
+        raise Trace3DError(f"{lift_dir / 'lift.json'}: lift.json is missing; is {lift_dir} the output of a lift step?")
 
 
 def _cmd_evaluate_nvos(args: argparse.Namespace) -> None:
@@ -403,7 +459,8 @@ def _cmd_tracing_table(args: argparse.Namespace) -> None:
 # ----------------------------------------------------------------------------------------------
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
+    """The ``trace3d`` parser; ``help_step``'s help lists its parameters (imports that step's modules)."""
     parser = argparse.ArgumentParser(
         prog="trace3d",
         description="Trace3D pipeline steps. Each step reads files, writes one output folder atomically.",
@@ -412,6 +469,20 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--threads", type=int, metavar="N",
                         help="CPU threads for torch, numba, OpenMP and COLMAP (default: all cores)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="STEP")
+    if help_step is not None:  # `trace3d <step> --help` lists the step's parameters (trace3d.schema)
+        add_parser = sub.add_parser
+
+        def add_with_parameters(name, **kwargs):
+            if name == help_step:
+                from .schema import help_text
+
+                text = help_text(name)
+                if text:
+                    kwargs["epilog"] = "--params keys = their defaults (null: the preset's value):\n" + text
+                    kwargs["formatter_class"] = argparse.RawDescriptionHelpFormatter
+            return add_parser(name, **kwargs)
+
+        sub.add_parser = add_with_parameters
 
     params_help = "parameter overrides: inline JSON/YAML mapping, or @file.yaml"
 
@@ -604,23 +675,84 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _help_step(argv: list[str]) -> str | None:
+    """The step whose ``--help`` is asked for (its parameter list is added to that help only, so that
+    other commands do not import the step modules)."""
+    if not any(a in ("-h", "--help") for a in argv):
+        return None
+    steps = [a for a in argv if not a.startswith("-")]
+    return steps[0] if steps else None
+
+
+class _Interrupted(KeyboardInterrupt):
+    """SIGTERM (Snakemake stopping a job, ``kill``) raised as an interruption, so that the temporary
+    output is removed on the way out as for Ctrl-C."""
+
+
+def _on_sigterm(signum, frame):  # noqa: ARG001 - signal handler signature
+    raise _Interrupted()
+
+
+def _interrupted(exc: BaseException) -> KeyboardInterrupt | None:
+    """The KeyboardInterrupt behind ``exc`` (numba's compiled code reports one as a SystemError)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
     _entry_point_environment()
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(_help_step(argv))
     args = parser.parse_args(argv)
     _command_environment(args)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    from .io import TempPathFilter
     from .threads import limit_threads
 
+    for handler in logging.getLogger().handlers:
+        if not any(isinstance(f, TempPathFilter) for f in handler.filters):
+            handler.addFilter(TempPathFilter())
+    import signal
+    import threading
+
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         with limit_threads(args.threads):
+            if args.command not in NO_KERNEL_COMMANDS:
+                from .compiling import compile_seconds, install
+
+                install()
             args.func(args)
+            if args.command not in NO_KERNEL_COMMANDS and compile_seconds() > 0:
+                log.info("compiled kernels for %.1f min (cached for later runs)", compile_seconds() / 60)
     except Trace3DError as exc:
-        print(f"trace3d {args.command}: error: {exc}", file=sys.stderr)
+        sentence = " ".join(str(exc).split())  # one line, whatever a wrapped library message held
+        print(f"trace3d {args.command}: error: {sentence}", file=sys.stderr)
         return 2
+    except BaseException as exc:  # noqa: BLE001 - an interruption is reported in one line, anything else re-raised
+        stop = _interrupted(exc)
+        if stop is None:
+            raise
+        # objects torn down half-built by the interruption (a progress bar) would print "Exception ignored"
+        # tracebacks on the way out: the one line below is the whole report
+        sys.unraisablehook = lambda unraisable: None
+        how = "stopped (SIGTERM)" if isinstance(stop, _Interrupted) else "interrupted"
+        print(f"trace3d {args.command}: {how}; nothing was written (an earlier output, if any, is unchanged).",
+              file=sys.stderr)
+        return 143 if isinstance(stop, _Interrupted) else 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     return 0
 
 

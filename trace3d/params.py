@@ -89,7 +89,16 @@ def from_mapping(cls: type[T], values: Mapping[str, Any] | None, where: str = "p
     try:
         return cls(**kwargs)
     except (TypeError, ValueError) as exc:
-        raise ConfigError(f"{where}: {exc}") from exc
+        text = str(exc)
+        raise ConfigError(f"{where}: {text}" + ("" if text.endswith((".", "?")) else ".")) from exc
+
+
+def yaml_problem(exc: Exception) -> str:
+    """A YAML parse error on one line: what is wrong and where (PyYAML's own text spans several lines)."""
+    problem = getattr(exc, "problem", None) or str(exc)
+    mark = getattr(exc, "problem_mark", None)
+    where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+    return " ".join(f"{problem}{where}".split())
 
 
 def load_params_arg(text: str | None) -> dict:
@@ -106,7 +115,7 @@ def load_params_arg(text: str | None) -> dict:
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{source}: not valid JSON/YAML ({exc}).") from exc
+        raise ConfigError(f"{source}: not valid JSON/YAML ({yaml_problem(exc)}); check the brackets and quotes.") from exc
     if data is None:
         return {}
     if not isinstance(data, dict):

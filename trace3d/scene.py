@@ -281,8 +281,18 @@ def write_rgb(path: str | Path, rgb: np.ndarray) -> None:
         tmp.write_bytes(buf.tobytes())
 
 
-def read_u16(path: str | Path, what: str = "16-bit map") -> np.ndarray:
-    """[H, W] uint16 PNG; raises SceneFormatError if missing, corrupt or not 16-bit single channel."""
+def scene_name(scene_dir: str | Path, meta: dict | None = None) -> str:
+    """A scene's name for reports: ``meta.json``'s ``name`` when it has one, else the folder's name, or its
+    parent's when the folder is the pipeline's ``results/<scene>/scene`` (never a parent such as ``data``)."""
+    if meta and isinstance(meta.get("name"), str) and meta["name"]:
+        return meta["name"]
+    folder = Path(scene_dir).resolve()
+    return folder.parent.name if folder.name == "scene" else folder.name
+
+
+def read_u16(path: str | Path, what: str = "16-bit map", size: tuple[int, int] | None = None) -> np.ndarray:
+    """[H, W] uint16 PNG; raises SceneFormatError if missing, corrupt, not 16-bit single channel or (with
+    ``size`` = (width, height), the camera's) not the camera's size."""
     path = Path(path)
     if not path.is_file():
         raise SceneFormatError(f"{path}: {what} file is missing.")
@@ -292,6 +302,11 @@ def read_u16(path: str | Path, what: str = "16-bit map") -> np.ndarray:
     if img.dtype != np.uint16 or img.ndim != 2:
         raise SceneFormatError(
             f"{path}: {what} must be a single-channel 16-bit PNG, got dtype {img.dtype} with shape {img.shape}."
+        )
+    if size is not None and img.shape != (size[1], size[0]):
+        raise SceneFormatError(
+            f"{path}: {what} is {img.shape[1]}x{img.shape[0]} but its view's image is {size[0]}x{size[1]}; "
+            f"make it at the image size (or point at the folder made for this scene)."
         )
     return img
 
@@ -382,7 +397,9 @@ class Scene:
 
     def instances(self, name: str) -> np.ndarray:
         """[H, W] uint16 ground-truth instance ids (leaf level)."""
-        return read_u16(self.instances_path(name), "instance map")
+        cam = next((c for c in self.cameras if c.name == name), None)
+        size = (cam.width, cam.height) if cam is not None else None  # a map at the wrong pixels is refused
+        return read_u16(self.instances_path(name), "instance map", size)
 
     def depth(self, name: str) -> np.ndarray:
         """[H, W] float32 depth along the optical axis in scene units; 0 where invalid."""

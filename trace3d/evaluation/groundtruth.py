@@ -119,7 +119,9 @@ class GroundTruth:
         ids = list(params.objects) if params.objects is not None else scene.objects.evaluated_ids()
         unknown = [i for i in ids if i not in scene.objects.by_id]
         if unknown:
-            raise SceneFormatError(f"{scene.root / 'objects.json'}: evaluated object ids {unknown[:5]} are not listed.")
+            where = "evaluate params.objects" if params.objects is not None else f"{scene.root / 'objects.json'}"
+            raise SceneFormatError(f"{where}: object ids {unknown[:5]} are not objects of the scene {scene.root} "
+                                   f"(its objects.json lists {len(scene.objects.by_id)}); use ids from that file.")
         self.object_ids = sorted(ids)
         self.members = {oid: membership(scene.objects, oid) for oid in self.object_ids}
         self.has_depth = scene.has_depth

@@ -24,7 +24,7 @@ import numpy as np
 
 from ..errors import SceneFormatError, Trace3DError
 from ..io import atomic_file, write_json
-from ..scene import Scene
+from ..scene import Scene, scene_name
 
 log = logging.getLogger(__name__)
 
@@ -113,7 +113,7 @@ def run_evaluate_nvos(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Pa
         pred = np.zeros_like(truth)
     scores = mask_scores(pred, truth)
     metrics = {
-        "scene": scene.meta.get("name", Path(scene_dir).parent.name),
+        "scene": scene_name(scene_dir, scene.meta),
         "variant": label or {},
         "protocol": "nvos",
         "lift": lift_info,

@@ -35,7 +35,7 @@ from tqdm import tqdm
 from ..errors import Trace3DError
 from ..io import write_json
 from ..params import from_mapping, to_dict
-from ..scene import Scene
+from ..scene import Scene, scene_name
 from .extraction import evaluate_extraction, render_alone
 from .groundtruth import GroundTruth
 from .metrics import mean_or_none
@@ -168,12 +168,12 @@ def run_evaluate(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Path, l
         })
     method = lift_info.get("method", "?")
     name = (label or {}).get("variant", method)
-    title = f"{Path(scene_dir).resolve().parent.name} / {name}: object mIoU " \
+    title = f"{scene_name(scene_dir, scene.meta)} / {name}: object mIoU " \
             f"{_fmt(summary['extraction']['mIoU'])}, NVS mIoU {_fmt(summary['nvs']['mIoU'])}"
     write_pictures(out_dir / "pictures.png", rows, title)
     seconds = time.perf_counter() - start
     metrics = {
-        "scene": Path(scene_dir).resolve().parent.name,
+        "scene": scene_name(scene_dir, scene.meta),
         "variant": label or {},
         "protocol": p.protocol,
         "params": to_dict(p),

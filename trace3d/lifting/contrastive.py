@@ -44,6 +44,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
+from ..compiling import track as track_compile_time
 from ..errors import Trace3DError
 from ..gaussians import GaussianModel
 from ..scene import Camera
@@ -299,6 +300,7 @@ class ContrastiveTrainer:
         history = []
         bar = tqdm(range(1, iterations + 1), desc="contrastive lifting", disable=not progress,
                    mininterval=0.5 if sys.stderr.isatty() else 30.0)
+        track_compile_time(bar)  # the ETA leaves out a first run's kernel compilation
         running = None
         for it in bar:
             value = self.step()

@@ -160,7 +160,8 @@ def run_labels_lift(scene: Scene, poses_dir: Path | None, gaussians_dir: Path, l
     p = from_mapping(LabelsParams, params, "labels lifting params")
     model, cameras = load_fitted(scene, poses_dir, gaussians_dir)
     train = [c for c in cameras if c.split == "train"]
-    maps = load_label_maps(_label_folder(labels_dir), [c.name for c in train], "label map")
+    maps = load_label_maps(_label_folder(labels_dir), [c.name for c in train], "label map",
+                           [(c.width, c.height) for c in train])
     start = time.perf_counter()
     weights = summed_label_weights(model, train, maps, near=p.near, progress=True)
     label, confidence, total = assign_labels(weights, p.min_confidence)

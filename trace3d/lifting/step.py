@@ -78,7 +78,7 @@ def run_lift(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Pat
 
     if labels_dir is None:
         raise ConfigError("lift: contrastive lifting needs --labels (the consistent instance maps).")
-    maps = load_label_maps(labels_dir, [c.name for c in train], "instance map")
+    maps = load_label_maps(labels_dir, [c.name for c in train], "instance map", [(c.width, c.height) for c in train])
     features, history, timing = lift_features(model, train, maps, p, progress=progress)
     np.save(out_dir / "features.npy", features)
     write_history(out_dir / "loss.csv", history)

@@ -146,6 +146,11 @@ def run_masks(scene: Scene, out_dir: Path, source: str, params: dict) -> None:
         "mean_masks_per_view": float(np.mean(list(counts.values()))) if counts else 0.0,
         "masks_per_view": counts,
     }
+    if counts and not any(counts.values()):
+        raise SceneFormatError(
+            f"{scene.root}: the {source} mask source gave no mask in any of the {len(counts)} views; later steps "
+            f"need masks to trace and merge (check the masks folder, or the source's parameters)."
+        )
     if statuses:
         summary["ground_truth_check"] = cross_view_disagreement(statuses)
     write_json(out_dir / "masks.json", summary)

@@ -524,7 +524,7 @@ def object_status(
     K = len(ids)
     obj_area = np.bincount(inverse, minlength=K)
     M = len(masks)
-    flat_masks = masks.reshape(M, -1)
+    flat_masks = masks.reshape(M, leaf.size)  # (M, -1) is ambiguous for a view without masks
     inter = np.zeros((M, K), dtype=np.int64)  # [M, K] pixels of mask m on object k
     for m in range(M):
         inter[m] = np.bincount(inverse[flat_masks[m]], minlength=K)

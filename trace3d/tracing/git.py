@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from ..compiling import track as track_compile_time
 from ..errors import SceneFormatError
 from ..gaussians import GaussianModel
 from ..scene import Camera
@@ -105,6 +106,7 @@ def trace_views(model: GaussianModel, cameras: Sequence[Camera], label_maps: Seq
     num_labels = np.zeros(views, np.int64)
     bar = tqdm(list(zip(cameras, label_maps)), desc="GIT trace", disable=not progress, leave=False,
                mininterval=0.5 if sys.stderr.isatty() else 30.0)  # log files get a line every 30 s
+    track_compile_time(bar)  # the ETA leaves out a first run's kernel compilation
     for v, (cam, labels) in enumerate(bar):
         labels_t = torch.from_numpy(np.asarray(labels).astype(np.int64))
         t = int(labels_t.max()) + 1 if labels_t.numel() else 1
@@ -138,11 +140,14 @@ class TraceParams:
             self.statistic = "weights" if self.preset == "paper" else "pixels"
 
 
-def load_label_maps(folder: Path, frames: Sequence[str], what: str) -> list[np.ndarray]:
-    """The 16-bit label maps ``folder/<frame>.png`` of ``frames``."""
+def load_label_maps(folder: Path, frames: Sequence[str], what: str,
+                    sizes: Sequence[tuple[int, int]] | None = None) -> list[np.ndarray]:
+    """The 16-bit label maps ``folder/<frame>.png`` of ``frames``; each must be its view's
+    (width, height) from ``sizes`` when given (a map of another size would be read at the wrong pixels)."""
     from ..scene import read_u16
 
-    return [read_u16(Path(folder) / f"{f}.png", what).astype(np.int64) for f in frames]
+    sizes = list(sizes) if sizes is not None else [None] * len(frames)
+    return [read_u16(Path(folder) / f"{f}.png", what, size).astype(np.int64) for f, size in zip(frames, sizes)]
 
 
 def load_fitted(scene, poses_dir: Path | None, gaussians_dir: Path) -> tuple[GaussianModel, list[Camera]]:
@@ -169,7 +174,7 @@ def run_trace(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Pa
     p = from_mapping(TraceParams, params, "trace params")
     model, cameras = load_fitted(scene, poses_dir, gaussians_dir)
     train = [c for c in cameras if c.split == "train"]
-    maps = load_label_maps(labels_dir, [c.name for c in train], "label map")
+    maps = load_label_maps(labels_dir, [c.name for c in train], "label map", [(c.width, c.height) for c in train])
     start = time.perf_counter()
     stats = trace_views(model, train, maps, count_pixels=p.statistic == "pixels", near=p.near, progress=True)
     seconds = time.perf_counter() - start

@@ -110,6 +110,10 @@ class RefineParams:
                              "checked; set final_prune: false with it")
         if self.iterations < 1 or any(d < 0 for d in self.detect_at):
             raise ValueError(f"iterations must be >= 1 and detect_at >= 0, got {self.iterations}, {self.detect_at}")
+        late = [d for d in self.detect_at if d > self.iterations]
+        if late:
+            raise ValueError(f"detect_at {late} lies after the last iteration ({self.iterations}, both on the 30k "
+                             f"scale); lower detect_at or raise iterations")
         if not self.schedule_scale > 0:
             raise ValueError(f"schedule_scale must be > 0, got {self.schedule_scale}")
 
@@ -325,6 +329,11 @@ def retrain_params(fit_config: dict, p: RefineParams):
     return from_mapping(TrainParams, values, "refine params.train")
 
 
+def _db(value) -> str:
+    """A PSNR for the log: two decimals (the JSON keeps every digit), n/a without test views."""
+    return "n/a" if value is None else f"{float(value):.2f}"
+
+
 def run_refine(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Path, out_dir: Path,
                params: dict) -> dict:
     """The ``refine`` step: GIT-guided density control while retraining the fitted scene on the
@@ -347,7 +356,7 @@ def run_refine(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: P
     extent = float(fit_config.get("extent", 1.0))
     train = [c for c in cameras if c.split == "train"]
     test = [c for c in cameras if c.split == "test"]
-    maps = load_label_maps(labels_dir, [c.name for c in train], "instance map")
+    maps = load_label_maps(labels_dir, [c.name for c in train], "instance map", [(c.width, c.height) for c in train])
     images = load_images(scene, train)
     test_images = load_images(scene, test)
     background = torch.tensor(train_params.background, dtype=torch.float32)
@@ -408,8 +417,8 @@ def run_refine(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: P
         plot_ambiguous(out_dir / "ambiguous.png", model, ambiguous0, refined, ambiguous1, train, images, bands,
                        train_params, p.highlight_views)
     write_json(out_dir / "refine.json", report)
-    log.info("refine: %d -> %d Gaussians, ambiguous %d -> %d, test PSNR %s -> %s", len(model), len(refined),
-             int(ambiguous0.sum()), int(ambiguous1.sum()), report["test_psnr_before"], report["test_psnr_after"])
+    log.info("refine: %d -> %d Gaussians, ambiguous %d -> %d, test PSNR %s -> %s dB", len(model), len(refined),
+             int(ambiguous0.sum()), int(ambiguous1.sum()), _db(report["test_psnr_before"]), _db(report["test_psnr_after"]))
     return report
 
 

@@ -41,6 +41,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from ..compiling import track as track_compile_time
 from ..errors import ConfigError, Trace3DError
 from ..gaussians import GaussianModel, all_finite
 from ..loss_kernels import surface_depth
@@ -230,6 +231,7 @@ def _fit_loop(model: GaussianModel, cameras: Sequence[Camera], images: list[torc
     interactive = sys.stderr.isatty()
     bar = tqdm(range(1, iterations + 1), desc=desc, disable=not progress, dynamic_ncols=True, leave=False,
                mininterval=0.5 if interactive else 30.0)  # log files get a line every 30 s
+    track_compile_time(bar)  # the ETA leaves out a first run's kernel compilation
     for iteration in bar:
         state.set_position_lr(exponential_lr(iteration, params.position_lr_init * extent,
                                              params.position_lr_final * extent, iterations))

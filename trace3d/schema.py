@@ -1,0 +1,365 @@
+"""The step parameters' one home, seen from outside: JSON schema and help text from the dataclasses.
+
+Every step's parameters are a typed dataclass in the library (:mod:`trace3d.params`). This module
+reads those dataclasses (field names, types, defaults and the one line of meaning their source gives
+each field) and derives from them
+
+- the JSON schema of the config's step sections, ``workflow/schemas/steps.schema.yaml``, which
+  ``config.schema.yaml`` refers to: every step mapping is closed (``additionalProperties: false``),
+  so a misspelled key fails ``snakemake -n`` before anything runs, with the known keys listed;
+- the parameter list that ``trace3d <step> --help`` prints.
+
+``python -m trace3d.schema`` rewrites the schema file; ``tests/test_bad_inputs.py`` fails when the
+file and the dataclasses disagree (a field added, renamed or removed without regenerating it).
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import inspect
+import io
+import json
+import sys
+import textwrap
+import tokenize
+import typing
+from pathlib import Path
+from typing import Any, Literal
+
+SCHEMA_PATH = Path(__file__).resolve().parent.parent / "workflow" / "schemas" / "steps.schema.yaml"
+
+# Defaults the hand-written schema filled into configs (Snakemake's validate writes a property's
+# `default` into the config when the mapping holding it is present), by the config path of that
+# mapping: kept so that existing results' rule parameters stay the same. No other step property carries
+# a `default`: a value the user did not write is the library's to choose.
+FILLED_DEFAULTS = {("lift",): {"pool_pixels": 8192, "path": "sparse", "seed": 0, "prompt_source": "simulated"}}
+
+
+def _registry() -> dict[str, list[type]]:
+    """Config section -> the dataclasses whose fields it may hold (several: any one's keys)."""
+    from .datasets.images import ImagesParams
+    from .datasets.llff import LLFFParams
+    from .datasets.replica import ReplicaParams
+    from .datasets.synthetic.params import SyntheticParams
+    from .evaluation.params import EvaluateParams
+    from .masks.patches import PatchParams
+    from .sfm import PosesParams
+    from .tracing.git import TraceParams
+    from .tracing.merge import MergeParams
+    from .tracing.refine import RefineParams
+    from .training.params import TrainParams
+
+    return {
+        "synthetic": [SyntheticParams],
+        "importer": [ReplicaParams, LLFFParams, ImagesParams],
+        "poses": [PosesParams],
+        "patches": [PatchParams],
+        "gaussians": [TrainParams],
+        "trace": [TraceParams],
+        "merge": [MergeParams],
+        "refine": [RefineParams],
+        "evaluate": [EvaluateParams],
+        "lift": lift_classes(),
+    }
+
+
+def mask_sources() -> dict[str, list[type]]:
+    """Mask source name -> its parameter dataclasses (from :data:`trace3d.masks.SOURCES`; several where a
+    ``model`` key picks the dataclass, as ``trace3d.masks.SIMULATED_MODELS`` does for the simulated source)."""
+    from . import masks
+
+    out = {}
+    for source in masks.SOURCES:
+        classes = [type(masks.parse_params(source, None))]
+        models = getattr(masks, f"{source.upper()}_MODELS", ())
+        for model in models:
+            cls = type(masks.parse_params(source, {"model": model}))
+            if cls not in classes:
+                classes.append(cls)
+        out[source] = classes
+    return out
+
+
+def lift_classes() -> list[type]:
+    from .lifting.step import METHODS, parse_lift_params
+
+    return [type(parse_lift_params({"method": method})) for method in METHODS]
+
+
+def step_classes(step: str) -> list[tuple[str, type]]:
+    """(when it applies, dataclass) of a CLI step (for ``--help``); empty where the step takes no parameters."""
+    if step == "masks":
+        return [(f"--source {source}", cls) for source, classes in mask_sources().items() for cls in classes]
+    if step == "scene":
+        from .datasets.images import ImagesParams
+        from .datasets.llff import LLFFParams
+        from .datasets.replica import ReplicaParams
+        from .datasets.synthetic.params import SyntheticParams
+
+        return [("synthetic", SyntheticParams), ("replica", ReplicaParams), ("nvos, llff", LLFFParams),
+                ("images", ImagesParams)]
+    if step == "lift":
+        return [(f"method: {type_name}", cls) for type_name, cls in zip(_lift_methods(), lift_classes())]
+    return [("", cls) for cls in _registry().get(step, [])]
+
+
+def _lift_methods() -> tuple[str, ...]:
+    from .lifting.step import METHODS
+
+    return METHODS
+
+
+def _nested() -> dict[tuple[type, str], type]:
+    """Mapping fields that hold another dataclass's overrides."""
+    from .lifting.contrastive import ContrastiveParams
+    from .lifting.query import QueryParams
+    from .tracing.refine import RefineParams
+    from .training.params import TrainParams
+
+    return {(RefineParams, "train"): TrainParams, (ContrastiveParams, "query"): QueryParams}
+
+
+# Keys the workflow sets itself: refused in the config, where they would be overwritten.
+WORKFLOW_SET = {"lift": ("method",)}
+
+
+# ----------------------------------------------------------------------------------------------
+# one line of meaning per field, from the dataclass's source
+# ----------------------------------------------------------------------------------------------
+
+
+def _comments(source: str) -> dict[int, str]:
+    """Line number (1-based) -> the text of the comment on that line."""
+    out = {}
+    for tok in tokenize.generate_tokens(io.StringIO(source).readline):
+        if tok.type == tokenize.COMMENT:
+            out[tok.start[0]] = tok.string.lstrip("#").strip()
+    return out
+
+
+def _first_sentence(text: str, limit: int = 140) -> str:
+    """The first sentence of ``text`` on one line, cut at a word near ``limit`` characters."""
+    text = " ".join(text.split())
+    for i in range(len(text) - 1):
+        if text[i] == "." and text[i + 1] == " " and text[:i].count("(") == text[:i].count(")"):
+            text = text[: i + 1]
+            break
+    if len(text) > limit:
+        text = text[:limit].rsplit(" ", 1)[0] + " ..."
+    return text
+
+
+def field_meanings(cls: type) -> dict[str, str]:
+    """Field name -> one line of meaning: the class docstring's ``name: ...`` entry, else the comment on
+    the field's line, else the comment block just above it; empty when the source says nothing."""
+    try:
+        source = textwrap.dedent(inspect.getsource(cls))
+    except (OSError, TypeError):
+        return {}
+    lines = source.splitlines()
+    comments = _comments(source)
+    doc = inspect.getdoc(cls) or ""
+    documented: dict[str, str] = {}
+    current = None
+    for line in doc.splitlines():
+        head = line.split(":", 1)
+        if len(head) == 2 and head[0].strip().isidentifier() and not line.startswith(" "):
+            current = head[0].strip()
+            documented[current] = head[1].strip()
+        elif current and line.startswith(" ") and line.strip():
+            documented[current] += " " + line.strip()
+        else:
+            current = None
+    out = {}
+    tree = ast.parse(source)
+    body = tree.body[0].body if tree.body and isinstance(tree.body[0], ast.ClassDef) else []
+    for node in body:
+        if not isinstance(node, ast.AnnAssign) or not isinstance(node.target, ast.Name):
+            continue
+        name = node.target.id
+        if name in documented:
+            out[name] = _first_sentence(documented[name])
+            continue
+        if node.lineno in comments:
+            out[name] = _first_sentence(comments[node.lineno])
+            continue
+        block = []
+        row = node.lineno - 1
+        while row >= 1 and row in comments and lines[row - 1].strip().startswith("#"):
+            text = comments[row]
+            if text.startswith("---") or text.startswith("==="):
+                break
+            block.insert(0, text)
+            row -= 1
+        out[name] = _first_sentence(" ".join(block)) if block else ""
+    return out
+
+
+def _default(f: dataclasses.Field) -> Any:
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    if f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
+        return f.default_factory()  # type: ignore[misc]
+    return dataclasses.MISSING
+
+
+def _type_text(annotation: Any) -> str:
+    text = str(annotation) if not isinstance(annotation, type) else annotation.__name__
+    return text.replace("typing.", "")
+
+
+def describe(cls: type) -> list[dict]:
+    """One row per field: name, type, default (JSON-able; None for null) and meaning."""
+    hints = typing.get_type_hints(cls)
+    meanings = field_meanings(cls)
+    rows = []
+    for f in dataclasses.fields(cls):
+        default = _default(f)
+        rows.append({"name": f.name, "type": _type_text(hints[f.name]),
+                     "default": None if default is dataclasses.MISSING else json.loads(json.dumps(default)),
+                     "meaning": meanings.get(f.name, "")})
+    return rows
+
+
+def help_text(step: str) -> str:
+    """The parameter list of ``trace3d <step> --help`` (empty when the step takes none)."""
+    parts = []
+    for when, cls in step_classes(step):
+        rows = describe(cls)
+        if not rows:
+            continue
+        parts.append(f"{cls.__name__}" + (f" ({when})" if when else "") + ":")
+        for row in rows:
+            default = json.dumps(row["default"])
+            line = f"  {row['name']} = {default}"
+            if row["meaning"]:
+                line += f"  -- {row['meaning']}"
+            parts.append(line)
+    return "\n".join(parts)
+
+
+# ----------------------------------------------------------------------------------------------
+# JSON schema
+# ----------------------------------------------------------------------------------------------
+
+
+def type_schema(annotation: Any) -> dict:
+    """The JSON schema of one field's annotation (the types :func:`trace3d.params.from_mapping` accepts)."""
+    origin = typing.get_origin(annotation)
+    args = typing.get_args(annotation)
+    if annotation is Any:
+        return {}
+    if origin is typing.Union or (origin is not None and str(origin) == "<class 'types.UnionType'>"):
+        options = [a for a in args if a is not type(None)]
+        nullable = len(options) < len(args)
+        if len(options) == 1:
+            inner = type_schema(options[0])
+        else:
+            inner = {"anyOf": [type_schema(a) for a in options]}
+        if not nullable:
+            return inner
+        if "enum" in inner:
+            return {"enum": list(inner["enum"]) + [None]}
+        if isinstance(inner.get("type"), str) and len(inner) == 1:
+            return {"type": [inner["type"], "null"]}
+        return {"anyOf": [inner, {"type": "null"}]}
+    if origin is Literal:
+        return {"enum": list(args)}
+    if origin in (list, tuple):
+        if origin is tuple and args and args[-1] is not Ellipsis:
+            items = {"prefixItems": [type_schema(a) for a in args], "minItems": len(args), "maxItems": len(args)}
+            return {"type": "array", **items}
+        return {"type": "array", "items": type_schema(args[0]) if args else {}}
+    if origin is dict or annotation is dict:
+        return {"type": "object"}
+    if dataclasses.is_dataclass(annotation):
+        return dataclass_schema([annotation])
+    simple = {float: "number", int: "integer", bool: "boolean", str: "string"}
+    if annotation in simple:
+        return {"type": simple[annotation]}
+    return {}
+
+
+def dataclass_schema(classes: list[type], drop: tuple[str, ...] = (), path: tuple[str, ...] = ()) -> dict:
+    """A closed object schema holding the fields of ``classes`` (a key of any one of them is allowed);
+    ``path`` is where the mapping sits in a step section (for :data:`FILLED_DEFAULTS`).
+
+    ``propertyNames`` lists the known keys, so that a misspelled key's error message names them all.
+    """
+    filled = FILLED_DEFAULTS.get(path)
+    nested = _nested()
+    collected: dict[str, list[tuple[dict, str]]] = {}
+    for cls in classes:
+        hints = typing.get_type_hints(cls)
+        meanings = field_meanings(cls)
+        for f in dataclasses.fields(cls):
+            if f.name in drop:
+                continue
+            if (cls, f.name) in nested:
+                schema = dataclass_schema([nested[(cls, f.name)]], path=path + (f.name,))
+            else:
+                schema = type_schema(hints[f.name])
+            default = _default(f)
+            text = meanings.get(f.name) or ""
+            shown = "null (preset)" if default is None else json.dumps(default)
+            collected.setdefault(f.name, []).append(
+                (schema, f"{cls.__name__}.{f.name}, default {shown}" + (f": {text}" if text else "")))
+    out = {}
+    for name, entries in collected.items():
+        schemas = []
+        for schema, _ in entries:
+            if schema not in schemas:
+                schemas.append(schema)
+        body = dict(schemas[0]) if len(schemas) == 1 else {"anyOf": schemas}
+        body["description"] = "; ".join(text for _, text in entries)
+        if filled and name in filled:
+            body["default"] = filled[name]
+        out[name] = body
+    names = sorted(out)
+    return {"type": "object", "propertyNames": {"enum": names}, "additionalProperties": False, "properties": out}
+
+
+def step_schemas() -> dict:
+    """The ``$defs`` of ``steps.schema.yaml``: one closed object schema per config step section."""
+    defs = {}
+    for step, classes in _registry().items():
+        defs[step] = dataclass_schema(classes, drop=WORKFLOW_SET.get(step, ()), path=(step,))
+        defs[step]["description"] = (f"parameters of the {step} step ({', '.join(c.__name__ for c in classes)}); "
+                                     f"a key not listed here is refused")
+    sources = mask_sources()
+    masks = {"source": {"enum": list(sources), "description": "where the 2D masks come from"}}
+    for source, classes in sources.items():
+        masks[source] = dataclass_schema(classes, path=("masks", source))
+        masks[source]["description"] = (f"parameters of the {source} mask source "
+                                        f"({', '.join(c.__name__ for c in classes)})")
+    defs["masks"] = {"type": "object", "description": "the 2D masks: the source and each source's parameters",
+                     "propertyNames": {"enum": sorted(masks)}, "additionalProperties": False, "properties": masks}
+    return defs
+
+
+def schema_document() -> dict:
+    return {"$schema": "https://json-schema.org/draft/2020-12/schema",
+            "description": "GENERATED by `python -m trace3d.schema` from the library's parameter dataclasses; "
+                           "do not edit by hand (tests/test_bad_inputs.py checks it is current).",
+            "$defs": step_schemas()}
+
+
+def schema_text() -> str:
+    import yaml
+
+    header = ("# GENERATED by `python -m trace3d.schema` from the library's parameter dataclasses: do not edit.\n"
+              "# The config's step sections (config.schema.yaml refers here); regenerate after changing a dataclass.\n")
+    return header + yaml.safe_dump(schema_document(), sort_keys=False, width=110, allow_unicode=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    target = Path(argv[0]) if argv else SCHEMA_PATH
+    target.write_text(schema_text())
+    print(f"wrote {target}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
