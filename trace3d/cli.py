@@ -594,7 +594,7 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--plot", help="PNG of the curves (results/plots/robustness.png)")
     p.set_defaults(func=_cmd_robustness)
 
-    p = sub.add_parser("effects", help="every variant under every mask model and seed: 95 % CIs, paired effects, "
+    p = sub.add_parser("effects", help="every variant under every mask model and seed: 95 %% CIs, paired effects, "
                                        "share of the raw-to-oracle gap")
     p.add_argument("--spec", required=True,
                    help="JSON/YAML (or @file): {runs: [{room, masks, variant, seed, eval}], oracle: [variants], raw}")
