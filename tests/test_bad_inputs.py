@@ -545,7 +545,7 @@ def test_step_help_lists_every_parameter(capsys):
     for name in MergeParams.__dataclass_fields__:
         assert f"  {name} = " in out, name
     assert "threshold = null  -- merge patch pairs whose similarity exceeds it" in out
-    assert "common_mask_only = true" in out
+    assert 'candidates = "coarser_mask"' in out
 
 
 # ----------------------------------------------------------------------------------------------

@@ -91,7 +91,9 @@ def test_end_to_end_tiny(tmp_path):
         # one more mask level of scene a, on a's fit (0.5 is a itself)
         "robustness": {"scenes": ["a"], "levels": [0.0, 0.5], "variants": ["no_refine"]},
     }
-    result = run_snakemake(tmp_path, "--cores", "2", "reproduce", config=config)
+    # the whole DAG with both evaluation protocols: a few minutes on an idle 2-core machine, far more beside
+    # other jobs (600 s ran out on 2026-11-27 under a load average of 10)
+    result = run_snakemake(tmp_path, "--cores", "2", "reproduce", config=config, timeout=1800)
     assert result.returncode == 0, result.stderr[-4000:]
     for scene in ("a", "b"):
         root = tmp_path / "results" / scene / "scene"

@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from typing import Iterator
+from typing import Iterator, Literal
 
 import cv2
 import numpy as np
@@ -103,7 +103,7 @@ class NestedParams:
         nest_coverage: a mask covered at least this much by a larger one is merged into it.
     """
 
-    model: str = "nested"
+    model: Literal["one_level", "nested"] = "nested"
     seed: int = 0
     inconsistency: float = 0.5
     part_rate: float = 0.55

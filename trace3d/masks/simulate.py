@@ -30,7 +30,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections import Counter
-from typing import Iterator, Mapping
+from typing import Iterator, Mapping, Literal
 
 import cv2
 import numpy as np
@@ -69,7 +69,7 @@ class SimulateParams:
         min_mask_pixels: masks with fewer pixels are dropped.
     """
 
-    model: str = "one_level"
+    model: Literal["one_level", "nested"] = "one_level"
     seed: int = 0
     inconsistency: float = 0.5
     part_rate: float = 0.6
