@@ -201,29 +201,34 @@ def markdown(summary: pd.DataFrame, effects: pd.DataFrame, frame: pd.DataFrame) 
     return "\n".join(lines)
 
 
-def plot(summary: pd.DataFrame, path: Path) -> None:
+def plot(effects: pd.DataFrame, path: Path) -> None:
+    """The paired effects with their 95 % intervals (over rooms x seeds), one panel per metric, one
+    colour per mask model: what each stage adds, and whether its interval includes 0."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    metrics = [m for m, _, _ in METRICS if f"{m} mean" in summary][:4]
-    models = sorted(summary.masks.unique(), key=lambda m: (m == "oracle", m != "default", m))
-    fig, axes = plt.subplots(1, len(metrics), figsize=(4.2 * len(metrics), 3.8), squeeze=False)
-    variants = sorted(summary.variant.unique())
-    width = 0.8 / max(len(variants), 1)
+    metrics = [m for m, _, _ in METRICS if not effects.empty and (effects.metric == m).any()][:4] or ["object mIoU"]
+    labels = [label for label, _, _ in EFFECTS if not effects.empty and (effects.effect == label).any()]
+    models = sorted(effects.masks.unique(), key=lambda m: (m != "default", m)) if not effects.empty else []
+    fig, axes = plt.subplots(1, len(metrics), figsize=(4.0 * len(metrics), 0.45 * max(len(labels), 1) + 1.6),
+                             squeeze=False, sharey=True)
     for ax, m in zip(axes[0], metrics):
-        for i, name in enumerate(variants):
-            part = summary[summary.variant == name].set_index("masks")
-            xs = [j + (i - (len(variants) - 1) / 2) * width for j, mk in enumerate(models) if mk in part.index]
-            ys = [part.loc[mk, f"{m} mean"] for mk in models if mk in part.index]
-            es = [np.nan_to_num(part.loc[mk, f"{m} ci95"]) for mk in models if mk in part.index]
-            ax.bar(xs, ys, width, yerr=es, capsize=2, label=name)
-        ax.set_xticks(range(len(models)), models, rotation=20)
-        ax.set_title(m + " (%)")
-        ax.grid(axis="y", alpha=0.3)
+        for k, model in enumerate(models):
+            part = effects[(effects.metric == m) & (effects.masks == model)].set_index("effect")
+            ys = [i + (k - (len(models) - 1) / 2) * 0.25 for i, label in enumerate(labels) if label in part.index]
+            xs = [part.loc[label, "mean"] for label in labels if label in part.index]
+            es = [np.nan_to_num(part.loc[label, "ci95"]) for label in labels if label in part.index]
+            ax.errorbar(xs, ys, xerr=es, fmt="o", capsize=3, label=f"{model} masks")
+        ax.axvline(0.0, color="k", lw=0.8)
+        ax.set_title(f"{m}: difference (points)")
+        ax.grid(axis="x", alpha=0.3)
+    axes[0][0].set_yticks(range(len(labels)), [label.split(": ")[0] + "\n" + label.split(": ")[-1] for label in labels],
+                          fontsize=7)
+    axes[0][0].invert_yaxis()
     axes[0][-1].legend(fontsize=7, loc="lower right")
-    fig.suptitle("Variants under each mask model: mean and 95 % CI over rooms × seeds")
+    fig.suptitle("Paired effect of each stage: mean and 95 % CI over rooms × lift seeds")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_file(path) as tmp:
@@ -248,4 +253,4 @@ def write_effects(spec: dict, out: Path, plot_path: Path | None = None) -> None:
     with atomic_file(raw_csv) as tmp:
         tmp.write_text(frame.sort_values(["masks", "variant", "room", "seed"]).to_csv(index=False, float_format="%.6g"))
     if plot_path is not None:
-        plot(summary, Path(plot_path))
+        plot(effects, Path(plot_path))
