@@ -23,6 +23,7 @@ include: "rules/gaussians.smk"
 include: "rules/trace.smk"
 include: "rules/lift.smk"
 include: "rules/evaluate.smk"
+include: "rules/segment.smk"
 include: "rules/report.smk"
 include: "rules/robustness.smk"
 include: "rules/effects.smk"
@@ -43,6 +44,9 @@ rule reproduce:
         rules.tables_nvos.output if NVOS_SCENES else [],
         expand(f"{RESULTS}/plots/evaluation/{{scene}}-{{variant}}.png", scene=EVAL_SCENES, variant=list(VARIANTS)),
         [f"{RESULTS}/plots/lift/{s}-{n}.png" for s in SCENES for n, v in VARIANTS.items() if v["lifting"] == "contrastive"],
+        # scenes without ground truth: the objects the contrastive lift separates (PLYs, turntables, contact sheet)
+        [f"{RESULTS}/plots/segment/{s}-{n}.png" for s in SEGMENT_SCENES for n, v in VARIANTS.items()
+         if v["lifting"] == "contrastive"],
         # object / NVS mIoU against the simulated mask inconsistency (config `robustness`)
         rules.robustness.output if ROBUSTNESS.get("scenes") else [],
         # the other mask models, the oracle and the lift seeds (config `mask_models`, `oracle`, `seeds`):

@@ -83,6 +83,20 @@ SCENES = sorted(config["scenes"])
 # (NVOS's target-view masks have their own protocol, below; a user's photos have no ground truth.)
 EVAL_KINDS = ("synthetic", "replica")
 EVAL_SCENES = [s for s in SCENES if config["scenes"][s]["kind"] in EVAL_KINDS]
+
+
+# Scenes with no ground truth at all (a user's photos or transforms.json, LLFF, a canonical scene without
+# instances/): `reproduce` segments them into the objects the contrastive lift separates (rules/segment.smk).
+def _without_ground_truth(name):
+    cfg = config["scenes"][name]
+    if cfg["kind"] in ("images", "transforms", "llff"):
+        return True
+    if cfg["kind"] == "canonical":
+        return not os.path.isdir(os.path.join(config.get("data_root", "."), cfg["source"], "instances"))
+    return False
+
+
+SEGMENT_SCENES = [s for s in SCENES if _without_ground_truth(s)]
 # NVOS scenes: scribbles on a reference view -> the target view's mask (rule evaluate_nvos, Table 4).
 NVOS_SCENES = [s for s in SCENES if config["scenes"][s]["kind"] == "nvos"]
 ENV = "../workflow/envs/trace3d.yaml"

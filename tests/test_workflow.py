@@ -292,7 +292,7 @@ def _rule_code_parts() -> dict[str, tuple[str, ...]]:
 
 @pytest.mark.parametrize("rule,module", [("gaussians", "trace3d.training.step"), ("refine", "trace3d.tracing.refine"),
                                          ("trace", "trace3d.tracing.git"), ("evaluate", "trace3d.evaluation.step"),
-                                         ("lift", "trace3d.lifting.step")])
+                                         ("lift", "trace3d.lifting.step"), ("segment", "trace3d.segment")])
 def test_a_rules_code_hash_covers_the_modules_its_step_imports(rule, module):
     """Snakemake reruns a step when the code it hashes changes: every package module the step's module
     imports (at import time, in a fresh interpreter) is one of the hashed files or inside a hashed

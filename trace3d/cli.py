@@ -367,6 +367,20 @@ def _cmd_extract(args: argparse.Namespace) -> None:
                     params)
 
 
+def _cmd_segment(args: argparse.Namespace) -> None:
+    from .io import atomic_dir
+    from .params import from_mapping, load_params_arg
+    from .scene import Scene
+    from .segment import SegmentParams, run_segment
+
+    params = load_params_arg(args.params)
+    from_mapping(SegmentParams, params, "segment params")  # refuse bad parameters before reading anything heavy
+    scene = Scene.read(args.scene)
+    with atomic_dir(args.out) as tmp:
+        run_segment(scene, Path(args.poses) if args.poses else None, Path(args.gaussians), Path(args.lift), tmp,
+                    params)
+
+
 def _parse_size(text: str) -> tuple[int, int]:
     parts = text.lower().split("x")
     if len(parts) != 2 or not all(p.isdigit() and int(p) > 0 for p in parts):
@@ -623,6 +637,17 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder: object.ply, object.png, turntable.png, extract.json")
     p.add_argument("--params", help=params_help + " (view, point: [x, y], threshold_steps, ...; the flags win)")
     p.set_defaults(func=_cmd_extract)
+
+    p = sub.add_parser("segment", help="the objects a contrastive lift separates, without ground truth: per-object "
+                                       "PLYs, turntable renders and a contact sheet")
+    p.add_argument("--scene", required=True)
+    p.add_argument("--poses", help="poses folder whose cameras the fitted scene lives with")
+    p.add_argument("--gaussians", required=True, help="the Gaussians the lifting used (point_cloud.ply)")
+    p.add_argument("--lift", required=True, help="contrastive lift folder (features.npy, lift.json)")
+    p.add_argument("--out", required=True, help="output folder: objects/<k>.ply, objects/<k>.png, contact_sheet.png, "
+                                                "segment.json")
+    p.add_argument("--params", help=params_help + " (samples, min_share, seed, min_gaussians, min_pixels, ...)")
+    p.set_defaults(func=_cmd_segment)
 
     p = sub.add_parser("summary", help="write the per-scene summary table (results/scenes.md)")
     p.add_argument("scenes", nargs="+", help="scene folders")

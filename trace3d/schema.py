@@ -42,7 +42,9 @@ def _registry() -> dict[str, list[type]]:
     from .datasets.llff import LLFFParams
     from .datasets.replica import ReplicaParams
     from .datasets.synthetic.params import SyntheticParams
+    from .datasets.transforms import TransformsParams
     from .evaluation.params import EvaluateParams
+    from .segment import SegmentParams
     from .masks.patches import PatchParams
     from .sfm import PosesParams
     from .tracing.git import TraceParams
@@ -52,7 +54,7 @@ def _registry() -> dict[str, list[type]]:
 
     return {
         "synthetic": [SyntheticParams],
-        "importer": [ReplicaParams, LLFFParams, ImagesParams],
+        "importer": [ReplicaParams, LLFFParams, ImagesParams, TransformsParams],
         "poses": [PosesParams],
         "patches": [PatchParams],
         "gaussians": [TrainParams],
@@ -60,6 +62,7 @@ def _registry() -> dict[str, list[type]]:
         "merge": [MergeParams],
         "refine": [RefineParams],
         "evaluate": [EvaluateParams],
+        "segment": [SegmentParams],
         "lift": lift_classes(),
     }
 
@@ -97,8 +100,10 @@ def step_classes(step: str) -> list[tuple[str, type]]:
         from .datasets.replica import ReplicaParams
         from .datasets.synthetic.params import SyntheticParams
 
+        from .datasets.transforms import TransformsParams
+
         return [("synthetic", SyntheticParams), ("replica", ReplicaParams), ("nvos, llff", LLFFParams),
-                ("images", ImagesParams)]
+                ("images", ImagesParams), ("transforms", TransformsParams)]
     if step == "lift":
         return [(f"method: {type_name}", cls) for type_name, cls in zip(_lift_methods(), lift_classes())]
     return [("", cls) for cls in _registry().get(step, [])]
