@@ -166,9 +166,14 @@ def base_scene(scene):
     return DERIVED[scene][0] if scene in DERIVED else scene
 
 
+def _own_masks(base):
+    """A configured scene's masks settings: the defaults' merged with its own."""
+    return deep_merge(config.get("defaults", {}).get("masks", {}), config["scenes"][base].get("masks", {}))
+
+
 def robustness_scene(base, level):
     """The scene that holds ``base`` at mask inconsistency ``level``: ``base`` itself at its own level."""
-    masks = deep_merge(config.get("defaults", {}).get("masks", {}), config["scenes"][base].get("masks", {}))
+    masks = _own_masks(base)
     own = masks.get("simulated", {}).get("inconsistency", SIMULATED_DEFAULT_INCONSISTENCY)
     return base if float(level) == float(own) else f"{base}@inc{float(level):g}"
 
@@ -176,7 +181,7 @@ def robustness_scene(base, level):
 for _base in ROBUSTNESS.get("scenes", []):
     if _base not in config["scenes"]:
         raise ValueError(f"config robustness.scenes: '{_base}' is not one of the config's scenes.")
-    _masks = deep_merge(config.get("defaults", {}).get("masks", {}), config["scenes"][_base].get("masks", {}))
+    _masks = _own_masks(_base)
     if _masks.get("source", "simulated") != "simulated":
         raise ValueError(f"config robustness.scenes: '{_base}' takes its masks from '{_masks['source']}'; "
                          f"the robustness curve varies the simulated masks' inconsistency, so it needs "
@@ -195,10 +200,6 @@ for _base in ROBUSTNESS.get("scenes", []):
 # shared with the robustness curve), the upper end of every "share of the raw-to-oracle gap" figure.
 MASK_MODELS = config.get("mask_models") or {}
 ORACLE = config.get("oracle") or {}
-
-
-def _own_masks(base):
-    return deep_merge(config.get("defaults", {}).get("masks", {}), config["scenes"][base].get("masks", {}))
 
 
 for _model, _spec in MASK_MODELS.items():
