@@ -1,10 +1,10 @@
 # Shared helpers: config validation, per-scene parameter merging, code-version hashes.
-import hashlib
 import json
 import os
 import re
 import shlex
 import shutil
+import sys
 from pathlib import Path
 
 import yaml
@@ -102,17 +102,24 @@ NVOS_SCENES = [s for s in SCENES if config["scenes"][s]["kind"] == "nvos"]
 ENV = "../workflow/envs/trace3d.yaml"
 PACKAGE = Path(workflow.basedir) / "trace3d"
 
+# The library's step registry (trace3d.steps: lift methods' keys, variant defaults) and the code hashes
+# derived from its import graph (trace3d.codehash): both read the checkout's sources statically, so
+# the Snakemake process imports neither torch nor numba.
+if str(workflow.basedir) not in sys.path:
+    sys.path.insert(0, str(workflow.basedir))
+import trace3d.codehash as _codehash
+import trace3d.steps as _steps
+
+if Path(_steps.__file__).resolve().parent.parent != PACKAGE.resolve():
+    raise ValueError(f"rules/common.smk: imported the step registry from {_steps.__file__}, not from this "
+                     f"checkout's {PACKAGE}; another trace3d is imported first.")
+
 # Process settings of every job (the shell commands inherit Snakemake's environment), made here
 # because importing trace3d makes none: sleeping OpenMP waits (spinning workers steal the cores the
 # numba kernels need, docs/performance.md) and numba's compile cache in the checkout, so that only the
 # first job compiles.  Values already in the environment (e.g. from the Makefile) are respected.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(workflow.basedir) / ".numba_cache"))
-
-# Library files every step runs (the CLI and the CPU target it chooses, atomic writing, parameter parsing, the
-# camera geometry that scene.py and gaussians.py import): part of every code version.
-COMMON_CODE = ("cli.py", "io.py", "params.py", "errors.py", "threads.py", "__init__.py", "geometry.py", "cputarget.py", "compiling.py")
-
 
 # Scenes read from a data set need their folder before any job starts: one sentence, not a failed job.
 def _check_sources():
@@ -154,9 +161,9 @@ def scene_config(scene):
 # A level is a derived scene `<room>@inc<level>` that shares the room's scene, poses and 2DGS fit
 # (its rules read the base room's folders; no copy, no refit) and runs its own masks, patches, trace,
 # merge, refine, overlay, lift and evaluate with `masks: {simulated: {inconsistency: level}}`. The level
-# the room already has is the room itself. Library default of the knob (trace3d.masks.simulate.
-# SimulateParams.inconsistency; a test keeps the two equal):
-SIMULATED_DEFAULT_INCONSISTENCY = 0.5
+# the room already has is the room itself; where the config names none, the library's default
+# (trace3d.masks.simulate.SimulateParams.inconsistency).
+SIMULATED_DEFAULT_INCONSISTENCY = _steps.default_inconsistency()
 ROBUSTNESS = config.get("robustness") or {}
 DERIVED = {}  # derived scene name -> (base scene, the masks settings merged over the base scene's)
 
@@ -248,18 +255,10 @@ def step_params(scene, step):
     return json.dumps(merged, sort_keys=True)
 
 
-def code_version(*parts):
-    """Hash of the library files a step runs (``COMMON_CODE`` and ``parts``), so that Snakemake reruns
-    the step when they change."""
-    digest = hashlib.sha1()
-    for part in COMMON_CODE + parts:
-        path = PACKAGE / part
-        files = sorted(path.rglob("*.py")) if path.is_dir() else [path]
-        for f in files:
-            if f.is_file():
-                digest.update(f.relative_to(PACKAGE).as_posix().encode())
-                digest.update(f.read_bytes())
-    return digest.hexdigest()[:12]
+def step_code(command):
+    """The code version of the ``trace3d <command>`` step: a hash of the library modules it imports,
+    found from the import graph (trace3d.codehash), so that Snakemake reruns the step when one changes."""
+    return _codehash.step_hash(command, PACKAGE)
 
 
 def scene_kind_args(wildcards):
@@ -308,8 +307,7 @@ def quoted_params(step):
 #   later   results/<scene>/<variant>/...              (evaluation: per variant)
 #   overlay: lift on each view's masks painted into one label per pixel (no patches, no merge, no
 #   refine: the EgoLifter-style baseline); it excludes consistent_masks and density_control.
-VARIANT_DEFAULTS = {"preset": "paper", "consistent_masks": True, "density_control": True, "lifting": "contrastive",
-                    "overlay": False, "merge_candidates": "coarser_mask"}
+VARIANT_DEFAULTS = _steps.variant_defaults()  # trace3d.steps.Variant
 # merge_candidates: which patch pairs of a view the merge compares: those inside a common coarser mask
 # (the supplementary and the released code; folder merge-<preset>) or all pairs (the paper's main text;
 # folder merge-<preset>-all, refine-<preset>-mergedall).
@@ -477,25 +475,11 @@ def lift_params(wildcards):
     seed = split_run(wildcards.variant)[1]
     if seed:
         merged["seed"] = seed
-    merged["method"] = v["lifting"]
     merged.setdefault("preset", v["preset"])
-    if v["lifting"] == "labels":  # closed-form assignment: only its own keys apply
-        merged = {k: merged[k] for k in LIFT_LABELS_KEYS if k in merged}
-        merged["method"] = "labels"
-    elif v["lifting"] == "self_prompt":  # contrastive-only keys of a shared `lift` block do not apply
-        for key in LIFT_CONTRASTIVE_ONLY:
-            merged.pop(key, None)
-    else:
-        for key in LIFT_SELF_PROMPT_ONLY:
-            merged.pop(key, None)
+    # a shared `lift` block holds several methods' keys: the ones of other methods only do not apply
+    # (trace3d.steps.lift_params_for, from the methods' dataclasses)
+    merged = _steps.lift_params_for(v["lifting"], merged)
     return shlex.quote(json.dumps(merged, sort_keys=True))
-
-
-LIFT_LABELS_KEYS = ("min_confidence", "near")
-LIFT_CONTRASTIVE_ONLY = ("dim", "kernel", "temperature", "temperature_pos", "temperature_neg", "lr", "iterations",
-                         "pixels", "pool_pixels", "init_std", "path", "fused", "pca_views", "log_every", "query")
-LIFT_SELF_PROMPT_ONLY = ("prompt_source", "simulate", "graph", "sam_checkpoint", "sam_model_type", "sam_device", "points",
-                         "max_views", "gaussian_share", "mask_threshold", "min_prompt_pixels")
 
 
 # --- evaluate (rules/evaluate.smk) ------------------------------------------------------------

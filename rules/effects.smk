@@ -22,7 +22,7 @@ rule effects:
         ),
     params:
         spec=lambda w: shlex.quote(json.dumps(effects_spec(), sort_keys=True)),
-        code=code_version("report/effects.py"),
+        code=step_code("effects"),
     threads: 1
     resources:
         mem_mb=1000,

@@ -21,7 +21,7 @@ rule evaluate:
         p=evaluate_params("standard"),
         objects=lambda w, output: f"--objects {output.objects}",
         label=lambda w: shlex.quote(json.dumps(run_label(w.variant), sort_keys=True)),
-        code=code_version("scene.py", "render", "gaussians.py", "evaluation", "lifting", "tracing/git.py"),
+        code=step_code("evaluate"),
     threads: 2
     resources:
         mem_mb=3000,
@@ -45,7 +45,7 @@ use rule evaluate as evaluate_official with:
         p=evaluate_params("official"),
         objects="",
         label=lambda w: shlex.quote(json.dumps(run_label(w.variant), sort_keys=True)),
-        code=code_version("scene.py", "render", "gaussians.py", "evaluation", "lifting", "tracing/git.py"),
+        code=step_code("evaluate"),
     log:
         f"{RESULTS}/logs/{{scene}}/{{variant}}/evaluate-official.log",
     benchmark:
@@ -66,7 +66,7 @@ rule evaluate_nvos:
     params:
         labels=lift_labels_arg,
         label=lambda w: shlex.quote(json.dumps(run_label(w.variant), sort_keys=True)),
-        code=code_version("scene.py", "render", "gaussians.py", "evaluation", "lifting", "tracing/git.py"),
+        code=step_code("evaluate-nvos"),
     threads: 2
     resources:
         mem_mb=3000,
@@ -102,7 +102,7 @@ rule tables:
     params:
         results=lambda w, output: os.path.dirname(os.path.dirname(output.table2)),
         out=lambda w, output: os.path.dirname(output.table2),
-        code=code_version("report/tables.py"),
+        code=step_code("tables"),
     threads: 1
     resources:
         mem_mb=1000,
@@ -130,7 +130,7 @@ use rule tables as tables_nvos with:
     params:
         results=lambda w, output: os.path.dirname(os.path.dirname(output.table4)),
         out=lambda w, output: os.path.dirname(output.table4),
-        code=code_version("report/tables.py"),
+        code=step_code("tables"),
     log:
         f"{RESULTS}/logs/tables-nvos.log",
 
@@ -152,7 +152,7 @@ use rule tables as tables_official with:
     params:
         results=lambda w, output: os.path.dirname(os.path.dirname(os.path.dirname(output.table2))),
         out=lambda w, output: os.path.dirname(output.table2),
-        code=code_version("report/tables.py"),
+        code=step_code("tables"),
     log:
         f"{RESULTS}/logs/tables-official.log",
 

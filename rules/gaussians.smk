@@ -11,7 +11,7 @@ rule gaussians:
         directory(f"{RESULTS}/{{scene}}/gaussians"),
     params:
         p=quoted_params("gaussians"),
-        code=code_version("scene.py", "render", "gaussians.py", "training", "losses.py", "loss_kernels.py", "pointcloud.py"),
+        code=step_code("gaussians"),
     threads: 2
     resources:
         mem_mb=4000,

@@ -13,7 +13,7 @@ rule lift:
     params:
         p=lift_params,
         labels=lift_labels_arg,
-        code=code_version("scene.py", "render", "gaussians.py", "lifting", "masks", "tracing/git.py"),
+        code=step_code("lift"),
     threads: 2
     resources:
         mem_mb=4000,

@@ -8,7 +8,7 @@ rule masks:
         directory(f"{RESULTS}/{{scene}}/masks"),
     params:
         args=mask_args,
-        code=code_version("scene.py", "masks"),
+        code=step_code("masks"),
     threads: lambda wc: 2 if mask_source(wc) == "sam" else 1
     resources:
         mem_mb=lambda wc: 8000 if mask_source(wc) == "sam" else 1000,
@@ -31,7 +31,7 @@ rule patches:
         directory(f"{RESULTS}/{{scene}}/patches"),
     params:
         p=quoted_params("patches"),
-        code=code_version("scene.py", "masks"),
+        code=step_code("patches"),
     threads: 1
     resources:
         mem_mb=1000,
@@ -56,7 +56,7 @@ rule overlay:
     output:
         directory(f"{RESULTS}/{{scene}}/overlay"),
     params:
-        code=code_version("scene.py", "masks"),
+        code=step_code("overlay"),
     threads: 1
     resources:
         mem_mb=1000,

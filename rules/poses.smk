@@ -10,7 +10,7 @@ rule poses:
         directory(f"{RESULTS}/{{scene}}/poses"),
     params:
         p=quoted_params("poses"),
-        code=code_version("scene.py", "sfm.py", "pointcloud.py"),
+        code=step_code("poses"),
     threads: 2
     resources:
         mem_mb=2000,

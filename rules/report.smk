@@ -10,6 +10,8 @@ rule scenes_table:
             category="Scenes",
             caption="../workflow/report/scenes.rst",
         ),
+    params:
+        code=step_code("summary"),
     threads: 1
     resources:
         mem_mb=1000,
@@ -37,6 +39,8 @@ rule reconstruction_table:
             category="Reconstruction",
             caption="../workflow/report/reconstruction.rst",
         ),
+    params:
+        code=step_code("reconstruction-table"),
     threads: 1
     resources:
         mem_mb=1000,
@@ -65,6 +69,8 @@ rule tracing_table:
             category="Tracing",
             caption="../workflow/report/tracing.rst",
         ),
+    params:
+        code=step_code("tracing-table"),
     threads: 1
     resources:
         mem_mb=1000,

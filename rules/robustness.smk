@@ -21,7 +21,7 @@ rule robustness:
         ),
     params:
         spec=lambda w: shlex.quote(json.dumps(robustness_spec(), sort_keys=True)),
-        code=code_version("report/robustness.py"),
+        code=step_code("robustness"),
     threads: 1
     resources:
         mem_mb=1000,

@@ -8,7 +8,7 @@ rule scene:
         directory(f"{RESULTS}/{{scene}}/scene"),
     params:
         args=scene_kind_args,
-        code=code_version("scene.py", "datasets", "preview.py"),
+        code=step_code("scene"),
     threads: 2
     resources:
         mem_mb=1000,

@@ -14,7 +14,7 @@ rule segment:
         directory(f"{RESULTS}/{{scene}}/{{variant}}/segment"),
     params:
         p=quoted_params("segment"),
-        code=code_version("segment.py", "scene.py", "render", "gaussians.py", "evaluation", "lifting", "tracing/git.py"),
+        code=step_code("segment"),
     threads: 2
     resources:
         mem_mb=3000,

@@ -12,7 +12,7 @@ rule trace:
         directory(f"{RESULTS}/{{scene}}/trace-{{preset}}"),
     params:
         p=preset_params("trace"),
-        code=code_version("scene.py", "render", "gaussians.py", "tracing/__init__.py", "tracing/git.py", "training"),
+        code=step_code("trace"),
     threads: 2
     resources:
         mem_mb=2000,
@@ -37,7 +37,7 @@ rule merge:
         directory(f"{RESULTS}/{{scene}}/merge-{{preset}}"),
     params:
         p=preset_params("merge"),
-        code=code_version("scene.py", "tracing/__init__.py", "tracing/git.py", "tracing/merge.py", "masks"),
+        code=step_code("merge"),
     threads: 2
     resources:
         mem_mb=2000,
@@ -59,7 +59,7 @@ use rule merge as merge_all with:
         directory(f"{RESULTS}/{{scene}}/merge-{{preset}}-all"),
     params:
         p=merge_all_params,
-        code=code_version("scene.py", "tracing/__init__.py", "tracing/git.py", "tracing/merge.py", "masks"),
+        code=step_code("merge"),
     log:
         f"{RESULTS}/logs/{{scene}}/merge-{{preset}}-all.log",
     benchmark:
@@ -77,8 +77,7 @@ rule refine:
     params:
         p=preset_params("refine"),
         labels=refine_labels_arg,
-        code=code_version("scene.py", "render", "gaussians.py", "tracing/__init__.py", "tracing/git.py",
-                           "tracing/refine.py", "training", "losses.py", "loss_kernels.py"),
+        code=step_code("refine"),
     threads: 2
     resources:
         mem_mb=4000,

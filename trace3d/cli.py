@@ -1,4 +1,6 @@
-"""``trace3d <step>``: one subcommand per pipeline step, plus ``trace3d bench <name>``.
+"""``trace3d <step>``: one subcommand per pipeline step, plus ``trace3d bench <name>`` and ``trace3d describe``.
+
+The steps' flags, help and handlers come from the registry, :mod:`trace3d.steps`.
 
 Thin by design: parse flags, call the library, write outputs atomically (into a temporary sibling
 that is renamed at the end).  Errors caused by the input are printed as one sentence and exit 2.
@@ -7,7 +9,6 @@ that is renamed at the end).  Errors caused by the input are printed as one sent
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import logging
 import os
@@ -15,6 +16,7 @@ import sys
 from pathlib import Path
 
 from .errors import Trace3DError
+from .steps import STEPS, handler
 
 log = logging.getLogger("trace3d")
 
@@ -22,9 +24,10 @@ log = logging.getLogger("trace3d")
 # Commands whose inner loop alternates short parallel regions with short serial parts (the lifting's
 # fast step: five numba regions in about 2.5 ms): there, waking sleeping workers for every region
 # costs about 45 us each, so their workers spin for about half a millisecond before sleeping.
-SPIN_COMMANDS = {("lift", None), ("bench", "lift"), ("bench", "lift-forms")}
+# (The steps' own flag: Step.spin in trace3d.steps.)
+SPIN_COMMANDS = {(s.command, None) for s in STEPS if s.spin} | {("bench", "lift"), ("bench", "lift-forms")}
 # Commands that run no numba kernel: no compile listener (trace3d.compiling), so no numba import.
-NO_KERNEL_COMMANDS = {"tables", "robustness", "summary", "reconstruction-table", "tracing-table"}
+NO_KERNEL_COMMANDS = {s.command for s in STEPS if not s.kernels} | {"describe"}
 
 
 def _entry_point_environment() -> None:
@@ -59,326 +62,30 @@ def _command_environment(args: argparse.Namespace) -> None:
 
 
 # ----------------------------------------------------------------------------------------------
-# step handlers (imports stay inside so that `trace3d --help` is fast)
+# handlers: the steps' own are trace3d.steps.<command>.run (imported when their command runs, so that
+# `trace3d --help` is fast); the benchmarks and the registry's description are here
 # ----------------------------------------------------------------------------------------------
 
 
-def _cmd_scene(args: argparse.Namespace) -> None:
-    from .io import atomic_dir
-    from .params import load_params_arg
-
-    params = load_params_arg(args.params)
-    source = _need_source(args) if args.kind != "synthetic" else None
-    out = Path(args.out)
-    with atomic_dir(out) as tmp:
-        if args.kind == "synthetic":
-            from .datasets import synthetic
-
-            synthetic.generate_scene(tmp, synthetic.params_from(params))
-        elif args.kind == "replica":
-            from .datasets import replica
-
-            replica.import_replica(source, tmp, replica.params_from(params))
-        elif args.kind == "nvos":
-            from .datasets import llff
-
-            llff.import_nvos(source, tmp, llff.params_from(params))
-        elif args.kind == "llff":
-            from .datasets import llff
-
-            llff.import_llff(source, tmp, llff.params_from(params))
-        elif args.kind == "images":
-            from .datasets import images
-
-            images.import_images(source, tmp, images.params_from(params))
-        elif args.kind == "transforms":
-            from .datasets import transforms
-
-            transforms.import_transforms(source, tmp, transforms.params_from(params))
-        elif args.kind == "canonical":
-            from .scene import Scene
-
-            import shutil
-
-            scene = Scene.read(source)
-            shutil.copytree(scene.root, tmp, dirs_exist_ok=True)
-        from .preview import scene_preview
-        from .scene import Scene
-
-        scene_preview(Scene.read(tmp), tmp / "preview.png")
-    log.info("wrote scene %s", out)
-
-
-def _need_source(args: argparse.Namespace) -> Path:
-    if not args.source:
-        raise Trace3DError(f"`trace3d scene {args.kind}` needs --source pointing at the data set folder.")
-    return Path(args.source)
-
-
-def _cmd_masks(args: argparse.Namespace) -> None:
-    from .io import atomic_dir
-    from .params import load_params_arg
-    from .scene import Scene
-
-    scene = Scene.read(args.scene)
-    from .masks import run_masks
-
-    with atomic_dir(args.out) as tmp:
-        run_masks(scene, tmp, args.source, load_params_arg(args.params))
-
-
-def _cmd_patches(args: argparse.Namespace) -> None:
-    from .io import atomic_dir
-    from .params import load_params_arg
-    from .scene import Scene
-
-    scene = Scene.read(args.scene)
-    from .masks.patches import run_patches
-
-    with atomic_dir(args.out) as tmp:
-        run_patches(scene, Path(args.masks), tmp, load_params_arg(args.params))
-
-
-def _cmd_masks_stats(args: argparse.Namespace) -> None:
-    import json
-
-    from .io import write_json
-    from .params import from_mapping, load_params_arg
-    from .scene import Scene
-
-    scene = Scene.read(args.scene)
-    from .masks.patches import PatchParams
-    from .masks.stats import scene_statistics
-
-    patch_params = from_mapping(PatchParams, load_params_arg(args.patch_params), "patches params")
-    result = scene_statistics(scene, Path(args.masks), patch_params)
-    if args.out:
-        write_json(Path(args.out), result)
-    print(json.dumps(result, indent=2))
-
-
-def _cmd_overlay(args: argparse.Namespace) -> None:
-    from .io import atomic_dir
-    from .scene import Scene
-
-    scene = Scene.read(args.scene)
-    from .masks.overlay import run_overlay
-
-    with atomic_dir(args.out) as tmp:
-        run_overlay(scene, Path(args.masks), tmp)
-
-
-def _cmd_poses(args: argparse.Namespace) -> None:
-    from .io import atomic_dir
-    from .params import load_params_arg
-    from .scene import Scene
-
-    scene = Scene.read(args.scene)
-    from .sfm import run_poses
-
-    with atomic_dir(args.out) as tmp:
-        run_poses(scene, tmp, load_params_arg(args.params))
-
-
-def _cmd_gaussians(args: argparse.Namespace) -> None:
-    from .io import atomic_dir
-    from .params import load_params_arg
-    from .scene import Scene
-
-    scene = Scene.read(args.scene)
-    from .training import run_gaussians
-
-    with atomic_dir(args.out) as tmp:
-        run_gaussians(scene, Path(args.poses) if args.poses else None, tmp, load_params_arg(args.params))
-
-
-def _cmd_trace(args: argparse.Namespace) -> None:
-    from .io import atomic_dir
-    from .params import load_params_arg
-    from .scene import Scene
-    from .tracing.git import run_trace
-
-    scene = Scene.read(args.scene)
-    with atomic_dir(args.out) as tmp:
-        run_trace(scene, Path(args.poses) if args.poses else None, Path(args.gaussians), Path(args.labels), tmp,
-                  load_params_arg(args.params))
-
-
-def _cmd_merge(args: argparse.Namespace) -> None:
-    from .io import atomic_dir
-    from .params import from_mapping, load_params_arg
-    from .scene import Scene
-    from .tracing.merge import MergeParams, run_merge
-
-    params = load_params_arg(args.params)
-    from_mapping(MergeParams, params, "merge params")  # refuse bad parameters before reading anything heavy
-    scene = Scene.read(args.scene)
-    _check_patch_maps(scene, Path(args.git), Path(args.patches))
-    with atomic_dir(args.out) as tmp:
-        run_merge(scene, Path(args.git), Path(args.patches), tmp, params)
-
-
-def _check_patch_maps(scene, git_dir: Path, patches_dir: Path) -> None:
-    """The merge's inputs agree with the scene: every traced view's patch map has its image's size, and
-    some view has a patch (with none, there is nothing to merge)."""
-    import numpy as np
-
-    from .scene import read_u16
-    from .tracing.git import GITStats
-
-    stats = GITStats.load(git_dir / "git.npz")
-    known = {c.name: c for c in scene.cameras}
-    any_patch = False
-    for frame in stats.frames:
-        if frame not in known:
-            raise Trace3DError(f"{git_dir / 'git.npz'}: traced view '{frame}' is not a view of the scene "
-                               f"{scene.root}; rerun the trace step on this scene.")
-        cam = known[frame]
-        patch_map = read_u16(patches_dir / f"{frame}.png", "patch map", (cam.width, cam.height))
-        any_patch = any_patch or bool(np.any(patch_map))
-    if stats.frames and not any_patch:
-        raise Trace3DError(f"{patches_dir}: no view has a patch (every patch map is empty), so there is nothing "
-                           f"to merge; check the masks step's output.")
-
-
-def _cmd_refine(args: argparse.Namespace) -> None:
-    from .io import atomic_dir
-    from .params import load_params_arg
-    from .scene import Scene
-    from .params import from_mapping
-    from .tracing.refine import RefineParams, run_refine
-
-    params = load_params_arg(args.params)
-    from_mapping(RefineParams, params, "refine params")  # refuse bad parameters before reading anything heavy
-    scene = Scene.read(args.scene)
-    with atomic_dir(args.out) as tmp:
-        run_refine(scene, Path(args.poses) if args.poses else None, Path(args.gaussians), Path(args.labels), tmp,
-                   params)
-
-
-def _cmd_evaluate(args: argparse.Namespace) -> None:
-    from .evaluation.step import run_evaluate
-    from .io import atomic_dir
-    from .params import load_params_arg
-
-    label = _json_arg(args.label, "--label")
-    params = load_params_arg(args.params)
-    _check_evaluate_inputs(Path(args.scene), Path(args.lift), params)
-    with contextlib.ExitStack() as stack:
-        tmp = stack.enter_context(atomic_dir(args.out))
-        objects = stack.enter_context(atomic_dir(args.objects)) if args.objects else None
-        run_evaluate(Path(args.scene), Path(args.poses) if args.poses else None, Path(args.gaussians), Path(args.lift),
-                     tmp, params, label, objects_dir=objects)
-
-
-def _check_evaluate_inputs(scene_dir: Path, lift_dir: Path, params: dict) -> None:
-    """Refuse bad evaluate parameters, a scene without ground truth and object ids the scene does not
-    have before the lifted scene is loaded."""
-    from .evaluation.params import EvaluateParams
-    from .params import from_mapping
-    from .scene import Scene
-
-    p = from_mapping(EvaluateParams, params, "evaluate params")
-    scene = Scene.read(scene_dir)
-    if scene.objects is None or not scene.has_instances:
-        raise Trace3DError(f"{scene_dir}: evaluation needs ground truth (objects.json and instances/), which this "
-                           f"scene lacks; evaluate scenes from the synthetic or replica importers.")
-    if p.objects is not None:
-        unknown = sorted(set(p.objects) - set(scene.objects.by_id))
-        if unknown:
-            ids = sorted(scene.objects.by_id)
-            has = f"ids {ids[0]} to {ids[-1]}" if ids else "no objects"
-            raise Trace3DError(f"evaluate params.objects: ids {unknown[:5]} are not objects of the scene {scene_dir} "
-                               f"(its objects.json has {has}); use ids from that file.")
-    if not (lift_dir / "lift.json").is_file():
-        raise Trace3DError(f"{lift_dir / 'lift.json'}: lift.json is missing; is {lift_dir} the output of a lift step?")
-
-
-def _cmd_evaluate_nvos(args: argparse.Namespace) -> None:
-    from .evaluation.nvos import run_evaluate_nvos
-    from .io import atomic_dir
-
-    label = _json_arg(args.label, "--label")
-    with atomic_dir(args.out) as tmp:
-        run_evaluate_nvos(Path(args.scene), Path(args.poses) if args.poses else None, Path(args.gaussians),
-                          Path(args.lift), Path(args.labels), tmp, label)
-
-
-def _json_arg(text: str | None, flag: str) -> dict:
-    if not text:
-        return {}
-    try:
-        value = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise Trace3DError(f"{flag}: not valid JSON ({exc}).") from exc
-    if not isinstance(value, dict):
-        raise Trace3DError(f"{flag}: expected a JSON mapping, got {type(value).__name__}.")
-    return value
-
-
-def _cmd_tables(args: argparse.Namespace) -> None:
-    from .report.tables import write_tables
-
-    write_tables(Path(args.results), Path(args.out), [Path(e) for e in args.evals] if args.evals else None)
-
-
-def _cmd_robustness(args: argparse.Namespace) -> None:
-    from .params import load_params_arg
-    from .report.robustness import write_robustness
-
-    write_robustness(load_params_arg(args.spec), Path(args.out), Path(args.plot) if args.plot else None)
-
-
-def _cmd_effects(args: argparse.Namespace) -> None:
-    from .params import load_params_arg
-    from .report.effects import write_effects
-
-    write_effects(load_params_arg(args.spec), Path(args.out), Path(args.plot) if args.plot else None)
-
-
-def _cmd_lift(args: argparse.Namespace) -> None:
-    from .io import atomic_dir
-    from .lifting.step import parse_lift_params, run_lift
-    from .params import load_params_arg
-    from .scene import Scene
-
-    params = load_params_arg(args.params)
-    parse_lift_params(params)  # refuse bad parameters before reading anything heavy
-    scene = Scene.read(args.scene)
-    with atomic_dir(args.out) as tmp:
-        run_lift(scene, Path(args.poses) if args.poses else None, Path(args.gaussians),
-                 Path(args.labels) if args.labels else None, tmp, params)
-
-
-def _cmd_extract(args: argparse.Namespace) -> None:
-    from .extract import parse_point, run_extract
-    from .io import atomic_dir
-    from .params import load_params_arg
-    from .scene import Scene
-
-    params = load_params_arg(args.params)
-    if args.view:
-        params["view"] = args.view
-    if args.point:
-        params["point"] = list(parse_point(args.point))
-    scene = Scene.read(args.scene)
-    with atomic_dir(args.out) as tmp:
-        run_extract(scene, Path(args.poses) if args.poses else None, Path(args.gaussians), Path(args.lift), tmp,
-                    params)
-
-
-def _cmd_segment(args: argparse.Namespace) -> None:
-    from .io import atomic_dir
-    from .params import from_mapping, load_params_arg
-    from .scene import Scene
-    from .segment import SegmentParams, run_segment
-
-    params = load_params_arg(args.params)
-    from_mapping(SegmentParams, params, "segment params")  # refuse bad parameters before reading anything heavy
-    scene = Scene.read(args.scene)
-    with atomic_dir(args.out) as tmp:
-        run_segment(scene, Path(args.poses) if args.poses else None, Path(args.gaussians), Path(args.lift), tmp,
-                    params)
+def _run_step(args: argparse.Namespace) -> None:
+    """Run the step ``args.command`` (its handler module's ``run``)."""
+    handler(args.command)(args)
+
+
+def _cmd_describe(args: argparse.Namespace) -> None:
+    from .schema import registry_document as describe
+
+    info = describe()
+    if args.json:
+        print(json.dumps(info, indent=2, sort_keys=False))
+        return
+    for command, entry in info["steps"].items():
+        print(f"{command:22s} {entry['entry'][0] if entry['entry'] else ''}"
+              + (f"  (rules: {', '.join(entry['rules'])})" if entry["rules"] else ""))
+    print("\nlifting methods and their keys:")
+    for method, entry in info["lift_methods"].items():
+        print(f"  {method}: {', '.join(entry['keys'])}")
+    print("\nvariant defaults: " + json.dumps(info["variant"]["defaults"]))
 
 
 def _parse_size(text: str) -> tuple[int, int]:
@@ -446,31 +153,16 @@ def _cmd_bench(args: argparse.Namespace) -> None:
     print(text)
 
 
-def _cmd_summary(args: argparse.Namespace) -> None:
-    from .report.summary import write_scene_table
-
-    write_scene_table([Path(p) for p in args.scenes], Path(args.out))
-
-
-def _cmd_reconstruction_table(args: argparse.Namespace) -> None:
-    from .report.summary import write_reconstruction_table
-
-    write_reconstruction_table(
-        [Path(p) for p in args.poses], [Path(g) for g in args.gaussians], Path(args.out),
-        Path(args.plot) if args.plot else None,
-    )
-
-
-def _cmd_tracing_table(args: argparse.Namespace) -> None:
-    from .report.tracing import write_tracing_table
-
-    write_tracing_table([Path(p) for p in args.merge], [Path(p) for p in args.refine] if args.refine else None,
-                        Path(args.out), Path(args.plot) if args.plot else None)
-
-
 # ----------------------------------------------------------------------------------------------
 # parser
 # ----------------------------------------------------------------------------------------------
+
+
+def _parameters_help(command: str) -> str:
+    """The parameter list of ``trace3d <command> --help`` (imports the step's parameter dataclasses)."""
+    from .schema import help_text
+
+    return help_text(command)
 
 
 def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
@@ -488,9 +180,7 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
 
         def add_with_parameters(name, **kwargs):
             if name == help_step:
-                from .schema import help_text
-
-                text = help_text(name)
+                text = _parameters_help(name)
                 if text:
                     kwargs["epilog"] = "--params keys = their defaults (null: the preset's value):\n" + text
                     kwargs["formatter_class"] = argparse.RawDescriptionHelpFormatter
@@ -498,175 +188,11 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
 
         sub.add_parser = add_with_parameters
 
-    params_help = "parameter overrides: inline JSON/YAML mapping, or @file.yaml"
-
-    p = sub.add_parser("scene", help="build a canonical scene folder (synthetic room or an importer)")
-    p.add_argument("kind", choices=["synthetic", "replica", "nvos", "llff", "canonical", "images", "transforms"])
-    p.add_argument("--out", required=True, help="output scene folder")
-    p.add_argument("--source", help="data set folder (importers only; images: a folder of photos; transforms: "
-                                    "the folder of a transforms.json capture, or the .json file)")
-    p.add_argument("--params", help=params_help)
-    p.set_defaults(func=_cmd_scene)
-
-    p = sub.add_parser("masks", help="2D instance masks per view (simulated | files | sam | graph)")
-    p.add_argument("--scene", required=True)
-    p.add_argument("--out", required=True)
-    p.add_argument("--source", default="simulated", choices=["simulated", "files", "sam", "graph"])
-    p.add_argument("--params", help=params_help)
-    p.set_defaults(func=_cmd_masks)
-
-    p = sub.add_parser("masks-stats", help="statistics of a masks folder (calibration: docs/masks_calibration.md)")
-    p.add_argument("--scene", required=True)
-    p.add_argument("--masks", required=True, help="a `trace3d masks` output folder")
-    p.add_argument("--patch-params", help="patch step parameters for the patch statistics (" + params_help + ")")
-    p.add_argument("--out", help="also write the statistics to this JSON file")
-    p.set_defaults(func=_cmd_masks_stats)
-
-    p = sub.add_parser("patches", help="overlap masks into disjoint primitive patches + hierarchy")
-    p.add_argument("--scene", required=True)
-    p.add_argument("--masks", required=True)
-    p.add_argument("--out", required=True)
-    p.add_argument("--params", help=params_help)
-    p.set_defaults(func=_cmd_patches)
-
-    p = sub.add_parser("overlay", help="overlay each view's masks into one label per pixel (baselines without patches)")
-    p.add_argument("--scene", required=True)
-    p.add_argument("--masks", required=True)
-    p.add_argument("--out", required=True)
-    p.set_defaults(func=_cmd_overlay)
-
-    p = sub.add_parser("poses", help="camera poses by pycolmap structure-from-motion (or the data set's)")
-    p.add_argument("--scene", required=True)
-    p.add_argument("--out", required=True)
-    p.add_argument("--params", help=params_help)
-    p.set_defaults(func=_cmd_poses)
-
-    p = sub.add_parser("gaussians", help="fit a 2D Gaussian Splatting scene")
-    p.add_argument("--scene", required=True)
-    p.add_argument("--poses", help="poses folder (cameras.json, points3D.ply); default: the scene's cameras")
-    p.add_argument("--out", required=True)
-    p.add_argument("--params", help=params_help)
-    p.set_defaults(func=_cmd_gaussians)
-
-    p = sub.add_parser("trace", help="GIT: trace every training view's label map through the fitted scene")
-    p.add_argument("--scene", required=True)
-    p.add_argument("--poses", help="poses folder whose cameras the fitted scene lives with")
-    p.add_argument("--gaussians", required=True, help="fitted scene folder (point_cloud.ply)")
-    p.add_argument("--labels", required=True, help="label maps <frame>.png (16-bit): the patches folder")
-    p.add_argument("--out", required=True)
-    p.add_argument("--params", help=params_help)
-    p.set_defaults(func=_cmd_trace)
-
-    p = sub.add_parser("merge", help="consistent instance maps: merge patches by majority vote over views")
-    p.add_argument("--scene", required=True)
-    p.add_argument("--git", required=True, help="trace step folder (git.npz)")
-    p.add_argument("--patches", required=True, help="patches folder (maps and hierarchy JSON)")
-    p.add_argument("--out", required=True)
-    p.add_argument("--params", help=params_help)
-    p.set_defaults(func=_cmd_merge)
-
-    p = sub.add_parser("refine", help="GIT-guided density control: split / prune ambiguous Gaussians while retraining")
-    p.add_argument("--scene", required=True)
-    p.add_argument("--poses", help="poses folder whose cameras the fitted scene lives with")
-    p.add_argument("--gaussians", required=True, help="fitted scene folder (point_cloud.ply, config.json)")
-    p.add_argument("--labels", required=True, help="instance maps <frame>.png: merge/instances (or raw patches)")
-    p.add_argument("--out", required=True)
-    p.add_argument("--params", help=params_help)
-    p.set_defaults(func=_cmd_refine)
-
-    p = sub.add_parser("evaluate", help="3D object extraction and novel-view segmentation of a lifted scene")
-    p.add_argument("--scene", required=True)
-    p.add_argument("--poses", help="poses folder whose cameras the fitted scene lives with")
-    p.add_argument("--gaussians", required=True, help="the Gaussians the lifting used (point_cloud.ply)")
-    p.add_argument("--lift", required=True, help="lift step folder (lift.json names the method)")
-    p.add_argument("--out", required=True)
-    p.add_argument("--params", help=params_help)
-    p.add_argument("--label", help="JSON mapping copied into metrics.json as \"variant\" (name and settings)")
-    p.add_argument("--objects", help="folder for the objects' PLY + turntable files (default: <out>/objects)")
-    p.set_defaults(func=_cmd_evaluate)
-
-    p = sub.add_parser("evaluate-nvos", help="NVOS (Table 4): scribbles on the reference view -> the target view's mask")
-    p.add_argument("--scene", required=True, help="an NVOS scene folder (trace3d scene nvos)")
-    p.add_argument("--poses", help="poses folder whose cameras the fitted scene lives with")
-    p.add_argument("--gaussians", required=True, help="the Gaussians the lifting used (point_cloud.ply)")
-    p.add_argument("--lift", required=True, help="lift step folder")
-    p.add_argument("--labels", required=True, help="the instance maps the lifting used (the scribbles select instances there)")
-    p.add_argument("--out", required=True)
-    p.add_argument("--label", help="JSON mapping copied into metrics.json as \"variant\" (name and settings)")
-    p.set_defaults(func=_cmd_evaluate_nvos)
-
-    p = sub.add_parser("tables", help="paper-layout Tables 2, 3 and 5 from results/<scene>/<variant>/eval/metrics.json")
-    p.add_argument("--results", required=True, help="results folder")
-    p.add_argument("--out", required=True, help="output folder (results/tables)")
-    p.add_argument("--evals", nargs="+", help="only these evaluate folders (<results>/<scene>/<variant>/eval)")
-    p.set_defaults(func=_cmd_tables)
-
-    p = sub.add_parser("robustness", help="object / NVS mIoU per variant against the simulated mask inconsistency")
-    p.add_argument("--spec", required=True,
-                   help="JSON/YAML (or @file): {runs: [{scene, level, variant, eval}], merges: [{scene, level, merge}]}")
-    p.add_argument("--out", required=True, help="Markdown table (results/tables/robustness.md; a CSV beside it)")
-    p.add_argument("--plot", help="PNG of the curves (results/plots/robustness.png)")
-    p.set_defaults(func=_cmd_robustness)
-
-    p = sub.add_parser("effects", help="every variant under every mask model and seed: 95 %% CIs, paired effects, "
-                                       "share of the raw-to-oracle gap")
-    p.add_argument("--spec", required=True,
-                   help="JSON/YAML (or @file): {runs: [{room, masks, variant, seed, eval}], oracle: [variants], raw}")
-    p.add_argument("--out", required=True, help="Markdown table (results/tables/effects.md; CSVs beside it)")
-    p.add_argument("--plot", help="PNG of the means and intervals (results/plots/effects.png)")
-    p.set_defaults(func=_cmd_effects)
-
-
-    p = sub.add_parser("lift", help="lift the instance maps into the scene: contrastive features or self-prompting")
-    p.add_argument("--scene", required=True)
-    p.add_argument("--poses", help="poses folder whose cameras the fitted scene lives with")
-    p.add_argument("--gaussians", required=True, help="fitted (or refined) scene folder (point_cloud.ply)")
-    p.add_argument("--labels", help="instance maps <frame>.png (16-bit, 0 = unlabelled): merge/instances or patches")
-    p.add_argument("--out", required=True)
-    p.add_argument("--params", help=params_help + " (method: contrastive | self_prompt, preset: paper | official)")
-    p.set_defaults(func=_cmd_lift)
-
-    p = sub.add_parser("extract", help="one object out by a click: its Gaussians (PLY) and renders, from a "
-                                       "contrastive lift")
-    p.add_argument("--scene", required=True)
-    p.add_argument("--poses", help="poses folder whose cameras the fitted scene lives with")
-    p.add_argument("--gaussians", required=True, help="the Gaussians the lifting used (point_cloud.ply)")
-    p.add_argument("--lift", required=True, help="contrastive lift folder (features.npy, lift.json)")
-    p.add_argument("--view", help="the training view clicked on (frame name)")
-    p.add_argument("--point", metavar="X,Y", help="the clicked pixel: column,row of the view's image (0-based)")
-    p.add_argument("--out", required=True, help="output folder: object.ply, object.png, turntable.png, extract.json")
-    p.add_argument("--params", help=params_help + " (view, point: [x, y], threshold_steps, ...; the flags win)")
-    p.set_defaults(func=_cmd_extract)
-
-    p = sub.add_parser("segment", help="the objects a contrastive lift separates, without ground truth: per-object "
-                                       "PLYs, turntable renders and a contact sheet")
-    p.add_argument("--scene", required=True)
-    p.add_argument("--poses", help="poses folder whose cameras the fitted scene lives with")
-    p.add_argument("--gaussians", required=True, help="the Gaussians the lifting used (point_cloud.ply)")
-    p.add_argument("--lift", required=True, help="contrastive lift folder (features.npy, lift.json)")
-    p.add_argument("--out", required=True, help="output folder: objects/<k>.ply, objects/<k>.png, contact_sheet.png, "
-                                                "segment.json")
-    p.add_argument("--params", help=params_help + " (samples, min_share, seed, min_gaussians, min_pixels, ...)")
-    p.set_defaults(func=_cmd_segment)
-
-    p = sub.add_parser("summary", help="write the per-scene summary table (results/scenes.md)")
-    p.add_argument("scenes", nargs="+", help="scene folders")
-    p.add_argument("--out", required=True)
-    p.set_defaults(func=_cmd_summary)
-
-    p = sub.add_parser("reconstruction-table", help="write the reconstruction table (poses + 2DGS fit per scene)")
-    p.add_argument("--poses", nargs="+", required=True, help="poses folders, one per scene")
-    p.add_argument("--gaussians", nargs="+", required=True, help="gaussians folders, same order")
-    p.add_argument("--out", required=True, help="Markdown table (a CSV is written beside it)")
-    p.add_argument("--plot", help="PNG bar plot of test PSNR and minutes per scene")
-    p.set_defaults(func=_cmd_reconstruction_table)
-
-    p = sub.add_parser("tracing-table", help="write the merge / refine table (results/tracing.md)")
-    p.add_argument("--merge", nargs="+", required=True, help="merge folders, one per scene")
-    p.add_argument("--refine", nargs="+", help="refine folders, same order")
-    p.add_argument("--out", required=True, help="Markdown table (a CSV is written beside it)")
-    p.add_argument("--plot", help="PNG bars of the merge quality before / after")
-    p.set_defaults(func=_cmd_tracing_table)
+    for step in STEPS:  # the pipeline's steps, from the registry (trace3d.steps)
+        p = sub.add_parser(step.command, help=step.help)
+        for argument in step.args:
+            p.add_argument(*argument.flags, **argument.kwargs)
+        p.set_defaults(func=_run_step)
 
     p = sub.add_parser("bench", help="benchmarks; print one JSON object")
     p.add_argument("name", choices=["render", "synthetic", "trace", "lift", "lift-forms", "fit", "fit-sweep",
@@ -697,6 +223,11 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--plot", help="fit-sweep: PNG of test PSNR against minutes")
     p.add_argument("--out", help="also write the JSON here")
     p.set_defaults(func=_cmd_bench)
+
+    p = sub.add_parser("describe", help="the step registry: steps, their flags and parameters with defaults, "
+                                        "the lifting methods' keys, the variant defaults")
+    p.add_argument("--json", action="store_true", help="as one JSON object (what the rules and the schema read)")
+    p.set_defaults(func=_cmd_describe)
     return parser
 
 

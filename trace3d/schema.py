@@ -29,42 +29,12 @@ from typing import Any, Literal
 
 SCHEMA_PATH = Path(__file__).resolve().parent.parent / "workflow" / "schemas" / "steps.schema.yaml"
 
-# Defaults the hand-written schema filled into configs (Snakemake's validate writes a property's
-# `default` into the config when the mapping holding it is present), by the config path of that
-# mapping: kept so that existing results' rule parameters stay the same. No other step property carries
-# a `default`: a value the user did not write is the library's to choose.
-FILLED_DEFAULTS = {("lift",): {"pool_pixels": 8192, "path": "sparse", "seed": 0, "prompt_source": "simulated"}}
-
-
 def _registry() -> dict[str, list[type]]:
-    """Config section -> the dataclasses whose fields it may hold (several: any one's keys)."""
-    from .datasets.images import ImagesParams
-    from .datasets.llff import LLFFParams
-    from .datasets.replica import ReplicaParams
-    from .datasets.synthetic.params import SyntheticParams
-    from .datasets.transforms import TransformsParams
-    from .evaluation.params import EvaluateParams
-    from .segment import SegmentParams
-    from .masks.patches import PatchParams
-    from .sfm import PosesParams
-    from .tracing.git import TraceParams
-    from .tracing.merge import MergeParams
-    from .tracing.refine import RefineParams
-    from .training.params import TrainParams
+    """Config section -> the dataclasses whose fields it may hold (several: any one's keys), from the
+    step registry (:data:`trace3d.steps.STEPS`; the masks' sources are :func:`mask_sources`)."""
+    from .steps import STEPS, load_class
 
-    return {
-        "synthetic": [SyntheticParams],
-        "importer": [ReplicaParams, LLFFParams, ImagesParams, TransformsParams],
-        "poses": [PosesParams],
-        "patches": [PatchParams],
-        "gaussians": [TrainParams],
-        "trace": [TraceParams],
-        "merge": [MergeParams],
-        "refine": [RefineParams],
-        "evaluate": [EvaluateParams],
-        "segment": [SegmentParams],
-        "lift": lift_classes(),
-    }
+    return {section: [load_class(ref) for ref in refs] for s in STEPS for section, refs in s.params.items()}
 
 
 def mask_sources() -> dict[str, list[type]]:
@@ -85,34 +55,27 @@ def mask_sources() -> dict[str, list[type]]:
 
 
 def lift_classes() -> list[type]:
-    from .lifting.step import METHODS, parse_lift_params
+    from .steps import LIFT_METHODS, load_class
 
-    return [type(parse_lift_params({"method": method})) for method in METHODS]
+    return [load_class(ref) for ref in LIFT_METHODS.values()]
 
 
 def step_classes(step: str) -> list[tuple[str, type]]:
     """(when it applies, dataclass) of a CLI step (for ``--help``); empty where the step takes no parameters."""
+    from .steps import IMPORTERS, LIFT_METHODS, STEPS, load_class
+
     if step == "masks":
         return [(f"--source {source}", cls) for source, classes in mask_sources().items() for cls in classes]
     if step == "scene":
-        from .datasets.images import ImagesParams
-        from .datasets.llff import LLFFParams
-        from .datasets.replica import ReplicaParams
-        from .datasets.synthetic.params import SyntheticParams
-
-        from .datasets.transforms import TransformsParams
-
-        return [("synthetic", SyntheticParams), ("replica", ReplicaParams), ("nvos, llff", LLFFParams),
-                ("images", ImagesParams), ("transforms", TransformsParams)]
+        kinds: dict[str, list[str]] = {}
+        for kind, ref in IMPORTERS.items():
+            kinds.setdefault(ref, []).append(kind)
+        synthetic = [ref for s in STEPS if s.command == "scene" for ref in s.params["synthetic"]]
+        return [("synthetic", load_class(synthetic[0]))] + [(", ".join(k), load_class(ref)) for ref, k in kinds.items()]
     if step == "lift":
-        return [(f"method: {type_name}", cls) for type_name, cls in zip(_lift_methods(), lift_classes())]
-    return [("", cls) for cls in _registry().get(step, [])]
-
-
-def _lift_methods() -> tuple[str, ...]:
-    from .lifting.step import METHODS
-
-    return METHODS
+        return [(f"method: {method}", load_class(ref)) for method, ref in LIFT_METHODS.items()]
+    return [("", cls) for s in STEPS if s.command == step for refs in s.params.values() for ref in refs
+            for cls in [load_class(ref)]]
 
 
 def _nested() -> dict[tuple[type, str], type]:
@@ -286,13 +249,14 @@ def type_schema(annotation: Any) -> dict:
     return {}
 
 
-def dataclass_schema(classes: list[type], drop: tuple[str, ...] = (), path: tuple[str, ...] = ()) -> dict:
-    """A closed object schema holding the fields of ``classes`` (a key of any one of them is allowed);
-    ``path`` is where the mapping sits in a step section (for :data:`FILLED_DEFAULTS`).
+def dataclass_schema(classes: list[type], drop: tuple[str, ...] = ()) -> dict:
+    """A closed object schema holding the fields of ``classes`` (a key of any one of them is allowed).
+
+    No property carries a ``default``: a value the user did not write is the library's to choose
+    (Snakemake's validate would write it into the config, and the rules would pass it on).
 
     ``propertyNames`` lists the known keys, so that a misspelled key's error message names them all.
     """
-    filled = FILLED_DEFAULTS.get(path)
     nested = _nested()
     collected: dict[str, list[tuple[dict, str]]] = {}
     for cls in classes:
@@ -302,7 +266,7 @@ def dataclass_schema(classes: list[type], drop: tuple[str, ...] = (), path: tupl
             if f.name in drop:
                 continue
             if (cls, f.name) in nested:
-                schema = dataclass_schema([nested[(cls, f.name)]], path=path + (f.name,))
+                schema = dataclass_schema([nested[(cls, f.name)]])
             else:
                 schema = type_schema(hints[f.name])
             default = _default(f)
@@ -318,8 +282,6 @@ def dataclass_schema(classes: list[type], drop: tuple[str, ...] = (), path: tupl
                 schemas.append(schema)
         body = dict(schemas[0]) if len(schemas) == 1 else {"anyOf": schemas}
         body["description"] = "; ".join(text for _, text in entries)
-        if filled and name in filled:
-            body["default"] = filled[name]
         out[name] = body
     names = sorted(out)
     return {"type": "object", "propertyNames": {"enum": names}, "additionalProperties": False, "properties": out}
@@ -329,17 +291,22 @@ def step_schemas() -> dict:
     """The ``$defs`` of ``steps.schema.yaml``: one closed object schema per config step section."""
     defs = {}
     for step, classes in _registry().items():
-        defs[step] = dataclass_schema(classes, drop=WORKFLOW_SET.get(step, ()), path=(step,))
+        defs[step] = dataclass_schema(classes, drop=WORKFLOW_SET.get(step, ()))
         defs[step]["description"] = (f"parameters of the {step} step ({', '.join(c.__name__ for c in classes)}); "
                                      f"a key not listed here is refused")
     sources = mask_sources()
     masks = {"source": {"enum": list(sources), "description": "where the 2D masks come from"}}
     for source, classes in sources.items():
-        masks[source] = dataclass_schema(classes, path=("masks", source))
+        masks[source] = dataclass_schema(classes)
         masks[source]["description"] = (f"parameters of the {source} mask source "
                                         f"({', '.join(c.__name__ for c in classes)})")
     defs["masks"] = {"type": "object", "description": "the 2D masks: the source and each source's parameters",
                      "propertyNames": {"enum": sorted(masks)}, "additionalProperties": False, "properties": masks}
+    from .steps import Variant
+
+    defs["variant"] = dataclass_schema([Variant])
+    defs["variant"]["description"] = ("a variant: the settings of the paper's stages (trace3d.steps.Variant; a setting "
+                                      "left out takes its default)")
     return defs
 
 
@@ -354,8 +321,49 @@ def schema_text() -> str:
     import yaml
 
     header = ("# GENERATED by `python -m trace3d.schema` from the library's parameter dataclasses: do not edit.\n"
-              "# The config's step sections (config.schema.yaml refers here); regenerate after changing a dataclass.\n")
+              "# The config's step sections and variants (config.schema.yaml refers here); regenerate after changing "
+              "a dataclass.\n")
     return header + yaml.safe_dump(schema_document(), sort_keys=False, width=110, allow_unicode=True)
+
+
+# ----------------------------------------------------------------------------------------------
+# `trace3d describe --json`
+# ----------------------------------------------------------------------------------------------
+
+
+def _rows(ref: str) -> list[dict]:
+    from .steps import load_class
+
+    return describe(load_class(ref))
+
+
+def registry_document() -> dict:
+    """The registry as data (imports every step's parameter dataclasses): steps with their flags,
+    entry functions, rules and parameters (name, type, default, meaning), the lifting methods with the
+    keys that apply to each, the variant settings with their defaults."""
+    from .steps import LIFT_METHODS, STEPS, Variant, default_inconsistency, lift_keys, variant_defaults
+
+    steps = {}
+    for s in STEPS:
+        params = {section: {ref: _rows(ref) for ref in refs} for section, refs in s.params.items()}
+        if s.command == "masks":
+            params = {f"masks.{source}": {f"{c.__module__}:{c.__name__}": _rows(f"{c.__module__}:{c.__name__}")
+                                          for c in classes} for source, classes in mask_sources().items()}
+        steps[s.command] = {
+            "help": s.help.replace("%%", "%"), "module": s.module, "entry": list(s.entry), "rules": list(s.rules),
+            "kernels": s.kernels, "arguments": [{"flags": list(a.flags), **{k: v for k, v in a.kwargs.items()
+                                                                           if k in ("required", "help", "nargs",
+                                                                                    "choices", "default")}}
+                                                for a in s.args],
+            "params": params,
+        }
+    return {
+        "steps": steps,
+        "lift_methods": {m: {"params": ref, "keys": list(lift_keys()[m])} for m, ref in LIFT_METHODS.items()},
+        "variant": {"defaults": variant_defaults(),
+                    "keys": [f.name for f in dataclasses.fields(Variant)]},
+        "simulated_default_inconsistency": default_inconsistency(),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:

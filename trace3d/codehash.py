@@ -1,0 +1,150 @@
+"""Each step's code version, derived from the import graph: the hash the Snakemake rules rerun a step on.
+
+A step runs its handler module (``trace3d.steps.<command>``, :mod:`trace3d.steps`) and what that imports,
+plus the runner every command goes through (:mod:`trace3d.cli`: process settings, thread limits, the
+compile listener, atomic writing). Both are read statically with :mod:`ast` (no module is imported, so
+the Snakemake process loads neither torch nor numba): every ``import``/``from ... import`` anywhere in a
+file (inside functions too), relative imports resolved, each package's ``__init__`` on the way to a
+module included, and ``from package import name`` followed into ``package/name.py`` where that is a
+module. The step's hash is over the files of that closure (path and bytes).
+
+Two edges are cut on purpose: the step modules are loaded by name (``importlib``) from the registry, so
+the runner's closure holds no step; and in ``cli.py`` the imports of the benchmark handler and of the
+``--help`` parameter listing (which imports every step's dataclasses) are not followed
+(:data:`NOT_RUN_BY_STEPS`), since no step runs them. Imports made by name at run time elsewhere
+(``importlib.import_module`` with a computed name) are not seen: the library makes none.
+"""
+
+from __future__ import annotations
+
+import ast
+import functools
+import hashlib
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parent
+ROOT = "trace3d"
+RUNNER = "trace3d.cli"
+# Functions of cli.py whose imports no step runs: the benchmarks, the registry's description and the
+# `--help` parameter listing.
+NOT_RUN_BY_STEPS = ("_cmd_bench", "_cmd_describe", "_parameters_help")
+
+
+def module_file(module: str, package: Path = PACKAGE) -> Path | None:
+    """The file of ``module`` (``trace3d.a.b``) under ``package``; None if there is none."""
+    rel = Path(*module.split(".")[1:]) if "." in module else Path()
+    base = package / rel
+    if (base / "__init__.py").is_file():
+        return base / "__init__.py"
+    if base.with_suffix(".py").is_file():
+        return base.with_suffix(".py")
+    return None
+
+
+def _is_package(module: str, package: Path) -> bool:
+    f = module_file(module, package)
+    return f is not None and f.name == "__init__.py"
+
+
+def _resolve(module: str, node: ast.ImportFrom, package: Path) -> str:
+    """The absolute name of ``from <node.level dots><node.module> import ...`` inside ``module``."""
+    if node.level == 0:
+        return node.module or ""
+    parts = module.split(".")
+    base = parts if _is_package(module, package) else parts[:-1]
+    base = base[: len(base) - (node.level - 1)]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def _skipped_nodes(tree: ast.Module, skip: tuple[str, ...]) -> set[int]:
+    out = set()
+    for node in tree.body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.name in skip:
+            out.update(id(n) for n in ast.walk(node))
+    return out
+
+
+@functools.lru_cache(maxsize=None)
+def _imports(module: str, package: Path, skip: tuple[str, ...] = ()) -> tuple[str, ...]:
+    """The package modules ``module`` imports anywhere in its file (functions of ``skip`` excepted)."""
+    path = module_file(module, package)
+    if path is None:
+        return ()
+    tree = ast.parse(path.read_text(), filename=str(path))
+    skipped = _skipped_nodes(tree, skip) if skip else set()
+    names: list[str] = []
+    for node in ast.walk(tree):
+        if id(node) in skipped:
+            continue
+        if isinstance(node, ast.Import):
+            names.extend(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = _resolve(module, node, package)
+            names.append(base)
+            names.extend(f"{base}.{alias.name}" for alias in node.names if alias.name != "*")
+    out = []
+    for name in names:
+        if name != ROOT and not name.startswith(ROOT + "."):
+            continue
+        parts = name.split(".")
+        for i in range(1, len(parts) + 1):  # a module's packages run their __init__ first
+            prefix = ".".join(parts[:i])
+            if module_file(prefix, package) is not None and prefix not in out:
+                out.append(prefix)
+    return tuple(out)
+
+
+def closure(starts: tuple[str, ...], package: Path = PACKAGE) -> list[str]:
+    """Every package module that importing and running ``starts`` may import, sorted."""
+    seen: set[str] = set()
+    todo = list(starts)
+    while todo:
+        module = todo.pop()
+        if module in seen or module_file(module, package) is None:
+            continue
+        seen.add(module)
+        skip = NOT_RUN_BY_STEPS if module == RUNNER else ()
+        todo.extend(_imports(module, package, skip))
+        parts = module.split(".")
+        todo.extend(".".join(parts[:i]) for i in range(1, len(parts)))
+    return sorted(seen)
+
+
+def step_modules(command: str, package: Path = PACKAGE) -> list[str]:
+    """The modules the step ``command`` runs: its handler module's closure and the runner's."""
+    from .steps import step
+
+    return closure((step(command).module, RUNNER), package)
+
+
+def files_hash(modules: list[str], package: Path = PACKAGE) -> str:
+    digest = hashlib.sha1()
+    for module in sorted(modules):
+        path = module_file(module, package)
+        digest.update(path.relative_to(package).as_posix().encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:12]
+
+
+def step_hash(command: str, package: Path = PACKAGE) -> str:
+    """The code version of the step ``command``: a hash of the files of :func:`step_modules`."""
+    return files_hash(step_modules(command, package), package)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m trace3d.codehash [command ...]``: each step's hash and the modules it covers."""
+    import sys
+
+    from .steps import STEPS
+
+    commands = (sys.argv[1:] if argv is None else argv) or [s.command for s in STEPS]
+    for command in commands:
+        modules = step_modules(command)
+        print(f"{command} {step_hash(command)} ({len(modules)} modules)")
+        for module in modules:
+            print(f"    {module}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,23 @@
+"""``trace3d extract``: see :data:`trace3d.steps.STEPS`."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def run(args: argparse.Namespace) -> None:
+    from ..extract import parse_point, run_extract
+    from ..io import atomic_dir
+    from ..params import load_params_arg
+    from ..scene import Scene
+
+    params = load_params_arg(args.params)
+    if args.view:
+        params["view"] = args.view
+    if args.point:
+        params["point"] = list(parse_point(args.point))
+    scene = Scene.read(args.scene)
+    with atomic_dir(args.out) as tmp:
+        run_extract(scene, Path(args.poses) if args.poses else None, Path(args.gaussians), Path(args.lift), tmp,
+                    params)
