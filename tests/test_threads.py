@@ -42,7 +42,9 @@ def test_cli_threads_reach_the_step(monkeypatch, tmp_path):
         seen["omp"] = os.environ.get("OMP_NUM_THREADS")
         seen["colmap"] = resolve_threads(params_from({}).num_threads)
 
-    monkeypatch.setattr(cli, "_cmd_summary", fake_summary)
+    import trace3d.steps.summary
+
+    monkeypatch.setattr(trace3d.steps.summary, "run", fake_summary)
     assert cli.main(["--threads", "1", "summary", str(tmp_path), "--out", str(tmp_path / "x.md")]) == 0
     assert seen == {"torch": 1, "numba": 1, "omp": "1", "colmap": 1}
     assert cli.main(["--threads", "0", "summary", str(tmp_path), "--out", str(tmp_path / "x.md")]) == 2
@@ -54,7 +56,8 @@ def test_numba_pool_is_sized_in_a_fresh_process(tmp_path):
             "def f(a):\n"
             "    import numba, torch\n"
             "    print(json.dumps([numba.config.NUMBA_NUM_THREADS, numba.get_num_threads(), torch.get_num_threads()]))\n"
-            "c._cmd_summary = f\n"
+            "import trace3d.steps.summary as s\n"
+            "s.run = f\n"
             f"c.main(['--threads', '1', 'summary', {str(tmp_path)!r}, '--out', 'x'])\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                          env=dict(os.environ, PYTHONPATH=str(REPO)))

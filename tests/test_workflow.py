@@ -264,54 +264,6 @@ def test_robustness_needs_simulated_masks(tmp_path):
     assert "needs masks.source: simulated" in result.stdout + result.stderr
 
 
-def test_workflow_default_inconsistency_is_the_librarys():
-    """The workflow names the level a room already has without importing the library: keep them equal."""
-    from trace3d.masks.simulate import SimulateParams
-
-    text = (REPO / "rules" / "common.smk").read_text()
-    value = float(text.split("SIMULATED_DEFAULT_INCONSISTENCY = ")[1].split()[0])
-    assert value == SimulateParams().inconsistency
-
-
-def _rule_code_parts() -> dict[str, tuple[str, ...]]:
-    """rule name -> the files/folders its ``code=code_version(...)`` hashes (COMMON_CODE included)."""
-    import ast
-    import re
-
-    common = (REPO / "rules" / "common.smk").read_text()
-    base = ast.literal_eval(common.split("COMMON_CODE = ")[1].split("\n")[0])
-    parts = {}
-    for path in sorted((REPO / "rules").glob("*.smk")):
-        for block in re.split(r"\n(?=rule |use rule )", "\n" + path.read_text()):
-            head = re.match(r"\s*(?:rule (\w+):|use rule \w+ as (\w+) with:)", block)
-            code = re.search(r"code=code_version\(([^)]*)\)", block)
-            if head and code:
-                parts[head.group(1) or head.group(2)] = tuple(base) + ast.literal_eval("(" + code.group(1) + ",)")
-    return parts
-
-
-@pytest.mark.parametrize("rule,module", [("gaussians", "trace3d.training.step"), ("refine", "trace3d.tracing.refine"),
-                                         ("trace", "trace3d.tracing.git"), ("evaluate", "trace3d.evaluation.step"),
-                                         ("lift", "trace3d.lifting.step"), ("segment", "trace3d.segment")])
-def test_a_rules_code_hash_covers_the_modules_its_step_imports(rule, module):
-    """Snakemake reruns a step when the code it hashes changes: every package module the step's module
-    imports (at import time, in a fresh interpreter) is one of the hashed files or inside a hashed
-    folder. (The fit's loss kernels and the camera geometry were missing until 2026-11-26.)"""
-    parts = _rule_code_parts()[rule]
-    out = subprocess.run([sys.executable, "-c", f"import sys, {module}; print(' '.join(sorted(m for m in sys.modules "
-                                                "if m.startswith('trace3d'))))"],
-                         capture_output=True, text=True, check=True, cwd=REPO).stdout.split()
-    package = REPO / "trace3d"
-    missing = []
-    for name in out:
-        rel = Path(*name.split(".")[1:])
-        file = package / rel / "__init__.py" if (package / rel).is_dir() else package / rel.with_suffix(".py")
-        rel_file = file.relative_to(package).as_posix()
-        if not any(rel_file == p or rel_file.startswith(p.rstrip("/") + "/") for p in parts):
-            missing.append(rel_file)
-    assert not missing, f"rule {rule}: code_version does not hash {missing}"
-
-
 def _study_config():
     return {"scenes": {"a": {"kind": "synthetic"}, "b": {"kind": "synthetic"}},
             "variants": {**GRID, "sp": {"lifting": "self_prompt", "lift": {"points": 5}}},
