@@ -11,6 +11,20 @@ import yaml
 from snakemake.logging import logger
 from snakemake.utils import validate
 
+PACKAGE = Path(workflow.basedir) / "trace3d"
+
+# The library's step registry (trace3d.steps: lift methods' keys, variant defaults) and the code hashes
+# derived from its import graph (trace3d.codehash): both read the checkout's sources statically, so
+# the Snakemake process imports neither torch nor numba.
+if sys.path[:1] != [str(workflow.basedir)]:
+    sys.path.insert(0, str(workflow.basedir))
+import trace3d.codehash as _codehash
+import trace3d.steps as _steps
+
+if Path(_steps.__file__).resolve().parent.parent != PACKAGE.resolve():
+    raise ValueError(f"rules/common.smk: imported the step registry from {_steps.__file__}, not from this "
+                     f"checkout's {PACKAGE}; another trace3d is imported first.")
+
 
 # --- checks made before the config is used: one sentence instead of a traceback -----------------
 def _duplicate_key(path):
@@ -81,7 +95,7 @@ RESULTS = config.get("results", "results")
 SCENES = sorted(config["scenes"])
 # Scenes whose importer writes ground-truth instance maps and objects: the evaluate step scores them.
 # (NVOS's target-view masks have their own protocol, below; a user's photos have no ground truth.)
-EVAL_KINDS = ("synthetic", "replica")
+EVAL_KINDS = tuple(k for k, truth in _steps.GROUND_TRUTH.items() if truth == "objects")
 EVAL_SCENES = [s for s in SCENES if config["scenes"][s]["kind"] in EVAL_KINDS]
 
 
@@ -89,7 +103,7 @@ EVAL_SCENES = [s for s in SCENES if config["scenes"][s]["kind"] in EVAL_KINDS]
 # instances/): `reproduce` segments them into the objects the contrastive lift separates (rules/segment.smk).
 def _without_ground_truth(name):
     cfg = config["scenes"][name]
-    if cfg["kind"] in ("images", "transforms", "llff"):
+    if _steps.GROUND_TRUTH[cfg["kind"]] is None:
         return True
     if cfg["kind"] == "canonical":
         return not os.path.isdir(os.path.join(config.get("data_root", "."), cfg["source"], "instances"))
@@ -98,22 +112,8 @@ def _without_ground_truth(name):
 
 SEGMENT_SCENES = [s for s in SCENES if _without_ground_truth(s)]
 # NVOS scenes: scribbles on a reference view -> the target view's mask (rule evaluate_nvos, Table 4).
-NVOS_SCENES = [s for s in SCENES if config["scenes"][s]["kind"] == "nvos"]
+NVOS_SCENES = [s for s in SCENES if _steps.GROUND_TRUTH[config["scenes"][s]["kind"]] == "nvos"]
 ENV = "../workflow/envs/trace3d.yaml"
-PACKAGE = Path(workflow.basedir) / "trace3d"
-
-# The library's step registry (trace3d.steps: lift methods' keys, variant defaults) and the code hashes
-# derived from its import graph (trace3d.codehash): both read the checkout's sources statically, so
-# the Snakemake process imports neither torch nor numba.
-if str(workflow.basedir) not in sys.path:
-    sys.path.insert(0, str(workflow.basedir))
-import trace3d.codehash as _codehash
-import trace3d.steps as _steps
-
-if Path(_steps.__file__).resolve().parent.parent != PACKAGE.resolve():
-    raise ValueError(f"rules/common.smk: imported the step registry from {_steps.__file__}, not from this "
-                     f"checkout's {PACKAGE}; another trace3d is imported first.")
-
 # Process settings of every job (the shell commands inherit Snakemake's environment), made here
 # because importing trace3d makes none: sleeping OpenMP waits (spinning workers steal the cores the
 # numba kernels need, docs/performance.md) and numba's compile cache in the checkout, so that only the
@@ -211,7 +211,7 @@ ORACLE = config.get("oracle") or {}
 
 for _model, _spec in MASK_MODELS.items():
     for _base in SCENES:
-        if config["scenes"][_base]["kind"] in ("synthetic", "replica"):
+        if config["scenes"][_base]["kind"] in EVAL_KINDS:
             DERIVED[f"{_base}@{_model}"] = (_base, _spec.get("masks") or {})
 
 
@@ -222,7 +222,7 @@ def oracle_scene(base):
 
 if ORACLE.get("variants"):
     for _base in SCENES:
-        if config["scenes"][_base]["kind"] not in ("synthetic", "replica"):
+        if config["scenes"][_base]["kind"] not in EVAL_KINDS:
             continue
         if _own_masks(_base).get("source", "simulated") != "simulated":
             raise ValueError(f"config oracle: scene '{_base}' takes its masks from '{_own_masks(_base)['source']}'; "

@@ -89,6 +89,12 @@ IMPORTERS = {  # `trace3d scene <kind>`: kind -> the parameter dataclass of its 
     "transforms": "trace3d.datasets.transforms:TransformsParams",
 }
 SCENE_KINDS = ("synthetic", "replica", "nvos", "llff", "canonical", "images", "transforms")
+# The ground truth a kind's scene folder holds: "objects" (instance maps and objects.json: the evaluate
+# step scores it), "nvos" (NVOS's target-view masks: evaluate-nvos), None (a user's photos or capture,
+# LLFF: the segment step separates its objects without ground truth); a canonical folder holds objects
+# when it has instances/ (the rules look).
+GROUND_TRUTH = {"synthetic": "objects", "replica": "objects", "nvos": "nvos", "llff": None, "images": None,
+                "transforms": None, "canonical": "objects if instances/"}
 # The simulated masks' default inconsistency (a room "already has" this level: rules/common.smk).
 SIMULATE_PARAMS = "trace3d.masks.simulate:SimulateParams"
 
