@@ -6,13 +6,17 @@ compile listener, atomic writing). Both are read statically with :mod:`ast` (no 
 the Snakemake process loads neither torch nor numba): every ``import``/``from ... import`` anywhere in a
 file (inside functions too), relative imports resolved, each package's ``__init__`` on the way to a
 module included, and ``from package import name`` followed into ``package/name.py`` where that is a
-module. The step's hash is over the files of that closure (path and bytes).
+module. Two forms of import by name count too: a string constant that is a module's full name
+(``"trace3d.lifting.query"``, for ``importlib.import_module``), and a function that lists a package's
+modules with ``pkgutil.iter_modules``/``walk_packages`` imports every module of the packages it
+imports. The step's hash is over the files of that closure (path and bytes).
 
 Two edges are cut on purpose: the step modules are loaded by name (``importlib``) from the registry, so
 the runner's closure holds no step; and in ``cli.py`` the imports of the benchmark handler and of the
 ``--help`` parameter listing (which imports every step's dataclasses) are not followed
-(:data:`NOT_RUN_BY_STEPS`), since no step runs them. Imports made by name at run time elsewhere
-(``importlib.import_module`` with a computed name) are not seen: the library makes none.
+(:data:`NOT_RUN_BY_STEPS`), since no step runs them. An import by a name computed some other way
+would not be seen: the library makes none (``tests/test_steps.py`` checks the closures against what
+the steps load when run).
 """
 
 from __future__ import annotations
@@ -64,6 +68,27 @@ def _skipped_nodes(tree: ast.Module, skip: tuple[str, ...]) -> set[int]:
     return out
 
 
+def _scans_packages(function: ast.AST) -> bool:
+    """Whether ``function`` lists a package's modules (``pkgutil.iter_modules`` / ``walk_packages``) to
+    import them by name."""
+    return any(isinstance(n, ast.Attribute) and n.attr in ("iter_modules", "walk_packages")
+               for n in ast.walk(function))
+
+
+def _package_modules(module: str, function: ast.AST, package: Path) -> list[str]:
+    """Every module of the packages that ``function`` imports (it imports them all by name)."""
+    out = []
+    for node in ast.walk(function):
+        if isinstance(node, ast.ImportFrom):
+            base = _resolve(module, node, package)
+            for name in [base] + [f"{base}.{alias.name}" for alias in node.names]:
+                path = module_file(name, package)
+                if path is not None and path.name == "__init__.py":
+                    out.extend(f"{name}.{'.'.join(f.relative_to(path.parent).with_suffix('').parts)}"
+                               for f in sorted(path.parent.rglob("*.py")) if f.name != "__init__.py")
+    return out
+
+
 @functools.lru_cache(maxsize=None)
 def _imports(module: str, package: Path, skip: tuple[str, ...] = ()) -> tuple[str, ...]:
     """The package modules ``module`` imports anywhere in its file (functions of ``skip`` excepted)."""
@@ -82,6 +107,12 @@ def _imports(module: str, package: Path, skip: tuple[str, ...] = ()) -> tuple[st
             base = _resolve(module, node, package)
             names.append(base)
             names.extend(f"{base}.{alias.name}" for alias in node.names if alias.name != "*")
+        elif (isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value.startswith(ROOT + ".")
+              and all(part.isidentifier() for part in node.value.split("."))
+              and module_file(node.value, package) is not None):
+            names.append(node.value)  # a module's full name in a string: imported by name (importlib)
+        elif isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and _scans_packages(node):
+            names.extend(_package_modules(module, node, package))
     out = []
     for name in names:
         if name != ROOT and not name.startswith(ROOT + "."):
