@@ -12,6 +12,11 @@ modules are loaded by name when their command runs (:func:`handler`), and datacl
 ``"module:Class"`` strings. :func:`fields_static` reads a dataclass's fields and literal defaults from
 its source (``ast``, no import), which is how the Snakemake process learns them without importing torch;
 ``tests/test_steps.py`` checks that the static reading and the imported dataclasses agree.
+
+A new step: a :class:`Step` in :data:`STEPS`, its handler ``trace3d/steps/<command>.py`` with
+``run(args)`` (library imports inside the function, so that ``trace3d --help`` stays fast), and a rule
+whose ``params`` hold ``code=step_code("<command>")``; a parameter dataclass named in ``params`` joins
+the generated config schema (``python -m trace3d.schema``).
 """
 
 from __future__ import annotations
@@ -39,7 +44,6 @@ class Arg:
 
 def arg(*flags: str, **kwargs: Any) -> Arg:
     return Arg(tuple(flags), kwargs)
-
 
 
 def params_arg(more: str = "") -> Arg:
