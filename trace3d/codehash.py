@@ -81,7 +81,13 @@ def _package_modules(module: str, function: ast.AST, package: Path) -> list[str]
     for node in ast.walk(function):
         if isinstance(node, ast.ImportFrom):
             base = _resolve(module, node, package)
-            for name in [base] + [f"{base}.{alias.name}" for alias in node.names]:
+            names = [f"{base}.{alias.name}" for alias in node.names]
+        elif isinstance(node, ast.Import):
+            names = [alias.name for alias in node.names]
+        else:
+            continue
+        for name in names:  # the packages imported (not the one imported from)
+            if name.startswith(ROOT + "."):
                 path = module_file(name, package)
                 if path is not None and path.name == "__init__.py":
                     out.extend(f"{name}.{'.'.join(f.relative_to(path.parent).with_suffix('').parts)}"
