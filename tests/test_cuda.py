@@ -44,7 +44,7 @@ def test_fit_on_cuda_matches_the_cpu_fit(room, tmp_path):
     for key in ("test_psnr", "train_psnr"):
         assert abs(cpu[key] - cuda[key]) < 1.0, (key, cpu[key], cuda[key])
     assert cpu["num_gaussians"] == pytest.approx(cuda["num_gaussians"], rel=0.2)
-    assert (cpu["device"], cuda["device"], auto["device"]) == ("cpu", "cuda", "cuda")
+    assert cpu["device"] == "cpu" and cuda["device"].startswith("cuda") and auto["device"] == cuda["device"]
     # `auto` picks CUDA when torch sees it: the same numbers as asking for it
     assert abs(auto["test_psnr"] - cuda["test_psnr"]) < 1e-3
     # what the step wrote on CUDA is read back on the CPU like any other fit
