@@ -116,6 +116,8 @@ def paired_effects(runs: pd.DataFrame) -> pd.DataFrame:
             left = group[group.variant == a].set_index("scene")
             right = group[group.variant == b].set_index("scene")
             common = left.index.intersection(right.index)
+            if not len(common):
+                continue
             row = {"effect": label, "level": level}
             for name in EFFECT_METRICS:
                 diff = ((left.loc[common, name] - right.loc[common, name]) * 100.0).dropna()
