@@ -296,16 +296,62 @@ def trace_object_weights(weights: Sequence, masks: Sequence[np.ndarray], share: 
     Returns:
         [N] bool, as :func:`trace_object`.
     """
-    n = weights[0].num_gaussians if weights else 0
-    fg = np.zeros(n, np.float64)
     if total is None:
         total = summed_weights(weights)
+    fg = object_weights(weights, masks)
+    frac = fg / np.maximum(total, 1e-12)
+    return (total > 0) & (frac > share)
+
+
+def object_weights(weights: Sequence, masks: Sequence[np.ndarray]) -> np.ndarray:
+    """[N] float64: every Gaussian's blending weight summed over the pixels of ``masks`` (one [H, W]
+    bool per view of ``weights``).
+
+    Visits only the CSR rows of the mask's pixels (a mask covers a few percent of a view), one numba
+    pass per view; the values are those of :func:`object_weights_numpy` to the bit: per view the
+    float64 sums in entry order (``np.bincount``'s), then added to the running total view by view."""
+    n = weights[0].num_gaussians if weights else 0
+    fg = np.zeros(n, np.float64)
+    view = np.zeros(n, np.float64)
+    touched = np.zeros(n, np.bool_)
+    order = np.empty(n, np.int64)
+    for w, m in zip(weights, masks):
+        flat = np.ascontiguousarray(np.asarray(m, bool).ravel())
+        _add_masked_rows(flat, w.pixels, w.indptr, w.indices, w.weights, fg, view, touched, order)
+    return fg
+
+
+def object_weights_numpy(weights: Sequence, masks: Sequence[np.ndarray]) -> np.ndarray:
+    """:func:`object_weights` in numpy over every entry (the twin)."""
+    n = weights[0].num_gaussians if weights else 0
+    fg = np.zeros(n, np.float64)
     for w, m in zip(weights, masks):
         inside = np.asarray(m, bool).ravel()[w.pixels]
         entries = np.repeat(inside, np.diff(w.indptr))
         fg += np.bincount(w.indices[entries], weights=w.weights[entries], minlength=n)
-    frac = fg / np.maximum(total, 1e-12)
-    return (total > 0) & (frac > share)
+    return fg
+
+
+@njit(cache=True)
+def _add_masked_rows(inside, pixels, indptr, indices, weights, fg, view, touched, order):
+    """fg += the per-Gaussian sums over the rows whose pixel is ``inside`` (``view``, ``touched`` and
+    ``order`` are scratch: zero / False on entry and on return)."""
+    count = 0
+    for r in range(pixels.shape[0]):
+        if not inside[pixels[r]]:
+            continue
+        for e in range(indptr[r], indptr[r + 1]):
+            g = indices[e]
+            if not touched[g]:
+                touched[g] = True
+                order[count] = g
+                count += 1
+            view[g] += np.float64(weights[e])
+    for k in range(count):
+        g = order[k]
+        fg[g] += view[g]
+        view[g] = 0.0
+        touched[g] = False
 
 
 def summed_weights(weights: Sequence) -> np.ndarray:
@@ -336,6 +382,9 @@ class FeatureLifted:
         self._queries: dict[str, QueryPoints] = {}
         self._maps: dict[str, np.ndarray] = {}
         self._gaussians: dict[str, np.ndarray] = {}
+        # object Gaussians by the query points' content (shared with :meth:`with_query` siblings: one
+        # query point is often all that the full search keeps, and then both protocols trace alike)
+        self._by_points: dict[bytes, np.ndarray] = {}
         self._weights: list | None = None
         self._total: np.ndarray | None = None
 
@@ -351,6 +400,7 @@ class FeatureLifted:
         if self._weights is None:
             self.train_weights()
         other._weights, other._total = self._weights, self._total
+        other._by_points = self._by_points
         return other
 
     def feature_map(self, camera: Camera) -> np.ndarray:
@@ -398,9 +448,15 @@ class FeatureLifted:
     def object_gaussians(self, query: ObjectQuery) -> np.ndarray:
         key = query_key(query)
         if key not in self._gaussians:
-            masks = self.object_masks(query, self.train_cameras)
-            self._gaussians[key] = trace_object_weights(self.train_weights(), masks, self.params.gaussian_share,
-                                                        self._total)
+            q = self.query_points(query)
+            # the traced Gaussians are a function of the query features and thresholds (and the share)
+            content = b"".join((np.float64(self.params.gaussian_share).tobytes(), str(q.features.shape).encode(),
+                                q.features.tobytes(), q.thresholds.tobytes()))
+            if content not in self._by_points:
+                masks = [q.mask(self.feature_map(c)) for c in self.train_cameras]
+                self._by_points[content] = trace_object_weights(self.train_weights(), masks,
+                                                                self.params.gaussian_share, self._total)
+            self._gaussians[key] = self._by_points[content]
         return self._gaussians[key]
 
 
