@@ -250,6 +250,12 @@ def test_single_point_shares_traced_objects_only_when_the_query_points_agree(tin
     for q, a, b in zip(queries, many, shared):
         np.testing.assert_array_equal(a, fresh_many.object_gaussians(q))
         np.testing.assert_array_equal(b, fresh_one.object_gaussians(q))
+        # the stacked one-call masks against each view's own mask
+        points = lifted.query_points(q)
+        stacked = lifted.train_masks(points)
+        assert len(stacked) == len(train) and lifted._stack[0] is not None
+        for cam, m in zip(train, stacked):
+            np.testing.assert_array_equal(m, points.mask(fresh_many.feature_map(cam)))
     # what the cache holds: one entry per distinct query-point content
     assert len(lifted._by_points) == len({(lifted.query_points(q).features.tobytes(),
                                            lifted.query_points(q).thresholds.tobytes()) for q in queries}

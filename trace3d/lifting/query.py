@@ -139,16 +139,36 @@ def _squared_distance(fmap, y, x, feats, k):
             e = fmap[y, x, d] - feats[k, d]
             res += e * e
         return res
-    r = np.empty(8, np.float32)
-    for j in range(8):
-        e = fmap[y, x, j] - feats[k, j]
-        r[j] = e * e
+    # the eight running sums in scalars (an np.empty(8) here was a heap allocation per pixel and query)
+    e0 = fmap[y, x, 0] - feats[k, 0]
+    e1 = fmap[y, x, 1] - feats[k, 1]
+    e2 = fmap[y, x, 2] - feats[k, 2]
+    e3 = fmap[y, x, 3] - feats[k, 3]
+    e4 = fmap[y, x, 4] - feats[k, 4]
+    e5 = fmap[y, x, 5] - feats[k, 5]
+    e6 = fmap[y, x, 6] - feats[k, 6]
+    e7 = fmap[y, x, 7] - feats[k, 7]
+    r0, r1, r2, r3 = e0 * e0, e1 * e1, e2 * e2, e3 * e3
+    r4, r5, r6, r7 = e4 * e4, e5 * e5, e6 * e6, e7 * e7
     full = n - n % 8
     for i in range(8, full, 8):
-        for j in range(8):
-            e = fmap[y, x, i + j] - feats[k, i + j]
-            r[j] += e * e
-    res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+        e0 = fmap[y, x, i] - feats[k, i]
+        e1 = fmap[y, x, i + 1] - feats[k, i + 1]
+        e2 = fmap[y, x, i + 2] - feats[k, i + 2]
+        e3 = fmap[y, x, i + 3] - feats[k, i + 3]
+        e4 = fmap[y, x, i + 4] - feats[k, i + 4]
+        e5 = fmap[y, x, i + 5] - feats[k, i + 5]
+        e6 = fmap[y, x, i + 6] - feats[k, i + 6]
+        e7 = fmap[y, x, i + 7] - feats[k, i + 7]
+        r0 += e0 * e0
+        r1 += e1 * e1
+        r2 += e2 * e2
+        r3 += e3 * e3
+        r4 += e4 * e4
+        r5 += e5 * e5
+        r6 += e6 * e6
+        r7 += e7 * e7
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
     for i in range(full, n):
         e = fmap[y, x, i] - feats[k, i]
         res += e * e
@@ -178,6 +198,25 @@ def _query_mask(fmap, feats, thresholds, out):
                     hit = True
                     break
             out[y, x] = hit
+
+
+@njit(parallel=True, cache=True)
+def _query_mask_stack(stack, feats, thresholds, out):
+    """:func:`_query_mask` of every view of ``stack`` [V, H, W, D] into ``out`` [V, H, W] in one call
+    (one parallel launch per object instead of one per view: on a loaded machine each launch waits for
+    both threads to be scheduled)."""
+    v, h, w, _ = stack.shape
+    for vy in prange(v * h):
+        i = vy // h
+        y = vy - i * h
+        fmap = stack[i]
+        for x in range(w):
+            hit = False
+            for k in range(feats.shape[0]):
+                if np.sqrt(_squared_distance(fmap, y, x, feats, k)) <= thresholds[k]:
+                    hit = True
+                    break
+            out[i, y, x] = hit
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -385,6 +424,7 @@ class FeatureLifted:
         # object Gaussians by the query points' content (shared with :meth:`with_query` siblings: one
         # query point is often all that the full search keeps, and then both protocols trace alike)
         self._by_points: dict[bytes, np.ndarray] = {}
+        self._stack: list = [None]  # [V, H, W, D] feature maps of the training views (shared by siblings)
         self._weights: list | None = None
         self._total: np.ndarray | None = None
 
@@ -401,6 +441,7 @@ class FeatureLifted:
             self.train_weights()
         other._weights, other._total = self._weights, self._total
         other._by_points = self._by_points
+        other._stack = self._stack
         return other
 
     def feature_map(self, camera: Camera) -> np.ndarray:
@@ -410,6 +451,31 @@ class FeatureLifted:
         if camera.name not in self._maps:
             self._maps[camera.name] = render_feature_map(self.model, camera, self.features, self.params.near)
         return self._maps[camera.name]
+
+    def train_masks(self, q: QueryPoints) -> list[np.ndarray]:
+        """[H, W] bool masks of ``q`` at every training view: :meth:`QueryPoints.mask` of each view's
+        feature map (the twin), in one kernel call over the training views' maps stacked once (their
+        cached maps become views into the stack); per view when the sizes differ or the kernel does
+        not apply."""
+        cams = self.train_cameras
+        if not cams or q.features.shape[0] == 0 or q.thresholds.dtype != np.float32 \
+                or len({(c.height, c.width) for c in cams}) != 1:
+            return [q.mask(self.feature_map(c)) for c in cams]
+        if self._stack[0] is None:
+            first = self.feature_map(cams[0])
+            if not _kernel_applies(first, q.features):
+                return [q.mask(self.feature_map(c)) for c in cams]
+            stack = np.empty((len(cams),) + first.shape, np.float32)
+            for i, c in enumerate(cams):
+                stack[i] = self.feature_map(c)
+                self._maps[c.name] = stack[i]
+            self._stack[0] = stack
+        stack = self._stack[0]
+        if not _kernel_applies(stack[0], q.features):
+            return [q.mask(self.feature_map(c)) for c in cams]
+        out = np.empty(stack.shape[:3], np.bool_)
+        _query_mask_stack(stack, q.features, q.thresholds, out)
+        return list(out)
 
     def train_weights(self) -> list:
         """The full-view pixel weights of every training view, computed once (about 4 MB per 160x120 view)."""
@@ -453,7 +519,7 @@ class FeatureLifted:
             content = b"".join((np.float64(self.params.gaussian_share).tobytes(), str(q.features.shape).encode(),
                                 q.features.tobytes(), q.thresholds.tobytes()))
             if content not in self._by_points:
-                masks = [q.mask(self.feature_map(c)) for c in self.train_cameras]
+                masks = self.train_masks(q)
                 self._by_points[content] = trace_object_weights(self.train_weights(), masks,
                                                                 self.params.gaussian_share, self._total)
             self._gaussians[key] = self._by_points[content]
