@@ -27,6 +27,7 @@ def run_bench(room: Path, variant: str = "full", params: dict | None = None, out
     """Evaluate ``room/variant/lift`` (``params``: the evaluate step's, default the standard protocol)
     ``repeats`` times; report every run's phases (the first may include numba compilation)."""
     from .. import compiling
+    from ..cputarget import describe
     from .step import Phases, run_evaluate
 
     room = Path(room)
@@ -52,7 +53,7 @@ def run_bench(room: Path, variant: str = "full", params: dict | None = None, out
             if compiled is not None:
                 run["compile_s"] = round(compiling.compile_seconds() - compiled, 3)
             runs.append(run)
-    return {"room": str(room), "variant": variant, "gaussians_dir": str(gaussians), "params": params,
+    return {"cpu": describe(), "room": str(room), "variant": variant, "gaussians_dir": str(gaussians), "params": params,
             "torch_threads": torch.get_num_threads(), "loadavg_before": load_before, "loadavg_after": os.getloadavg(),
             "runs": runs}
 
