@@ -337,6 +337,15 @@ def test_query_kernels_give_numpys_distances_and_masks_to_the_bit(d):
     mask = q.mask(fmap)
     assert np.array_equal(mask, (want <= q.thresholds[:, None, None]).any(0))
     assert 0 < mask.sum() < mask.size
+    # one query point at a time, thresholds at occurring distances (and one float32 step below)
+    # across the whole range: the kernel's early rejection after eight dimensions never changes a pixel
+    for k in range(4):
+        one = QueryPoints(feats[k:k + 1].copy(), np.zeros(1, np.float32), np.zeros((1, 2), np.int64),
+                          np.zeros(1, np.float32))
+        for t in np.sort(want[k].ravel())[::37]:
+            for thr in (t, np.nextafter(t, np.float32(0))):
+                one.thresholds = np.array([thr], np.float32)
+                assert np.array_equal(one.mask(fmap), want[k] <= one.thresholds[0])
 
 
 # ----------------------------------------------------------------------------------------------

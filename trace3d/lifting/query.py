@@ -175,6 +175,52 @@ def _squared_distance(fmap, y, x, feats, k):
     return res
 
 
+@njit(cache=True, inline="always")
+def _within(fmap, y, x, feats, k, t):
+    """sqrt(:func:`_squared_distance`) <= t, the same float32 operations, but a pixel is rejected after
+    the first eight dimensions when their eight running sums alone already exceed t: every later
+    operation adds a non-negative square and rounding is monotone, so the full sum is at least that
+    partial sum (the answer is exactly the full test's)."""
+    n = feats.shape[1]
+    if n < 8:
+        return np.sqrt(_squared_distance(fmap, y, x, feats, k)) <= t
+    e0 = fmap[y, x, 0] - feats[k, 0]
+    e1 = fmap[y, x, 1] - feats[k, 1]
+    e2 = fmap[y, x, 2] - feats[k, 2]
+    e3 = fmap[y, x, 3] - feats[k, 3]
+    e4 = fmap[y, x, 4] - feats[k, 4]
+    e5 = fmap[y, x, 5] - feats[k, 5]
+    e6 = fmap[y, x, 6] - feats[k, 6]
+    e7 = fmap[y, x, 7] - feats[k, 7]
+    r0, r1, r2, r3 = e0 * e0, e1 * e1, e2 * e2, e3 * e3
+    r4, r5, r6, r7 = e4 * e4, e5 * e5, e6 * e6, e7 * e7
+    if np.sqrt(((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))) > t:
+        return False
+    full = n - n % 8
+    for i in range(8, full, 8):
+        e0 = fmap[y, x, i] - feats[k, i]
+        e1 = fmap[y, x, i + 1] - feats[k, i + 1]
+        e2 = fmap[y, x, i + 2] - feats[k, i + 2]
+        e3 = fmap[y, x, i + 3] - feats[k, i + 3]
+        e4 = fmap[y, x, i + 4] - feats[k, i + 4]
+        e5 = fmap[y, x, i + 5] - feats[k, i + 5]
+        e6 = fmap[y, x, i + 6] - feats[k, i + 6]
+        e7 = fmap[y, x, i + 7] - feats[k, i + 7]
+        r0 += e0 * e0
+        r1 += e1 * e1
+        r2 += e2 * e2
+        r3 += e3 * e3
+        r4 += e4 * e4
+        r5 += e5 * e5
+        r6 += e6 * e6
+        r7 += e7 * e7
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    for i in range(full, n):
+        e = fmap[y, x, i] - feats[k, i]
+        res += e * e
+    return np.sqrt(res) <= t
+
+
 @njit(parallel=True, cache=True)
 def _query_distances(fmap, feats, out):
     """out[k, y, x] = |fmap[y, x] - feats[k]| (float32, numpy's values)."""
@@ -194,7 +240,7 @@ def _query_mask(fmap, feats, thresholds, out):
         for x in range(w):
             hit = False
             for k in range(feats.shape[0]):
-                if np.sqrt(_squared_distance(fmap, y, x, feats, k)) <= thresholds[k]:
+                if _within(fmap, y, x, feats, k, thresholds[k]):
                     hit = True
                     break
             out[y, x] = hit
@@ -213,7 +259,7 @@ def _query_mask_stack(stack, feats, thresholds, out):
         for x in range(w):
             hit = False
             for k in range(feats.shape[0]):
-                if np.sqrt(_squared_distance(fmap, y, x, feats, k)) <= thresholds[k]:
+                if _within(fmap, y, x, feats, k, thresholds[k]):
                     hit = True
                     break
             out[i, y, x] = hit
