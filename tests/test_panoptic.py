@@ -261,3 +261,24 @@ def test_single_point_shares_traced_objects_only_when_the_query_points_agree(tin
                                            lifted.query_points(q).thresholds.tobytes()) for q in queries}
                                          | {(one.query_points(q).features.tobytes(),
                                              one.query_points(q).thresholds.tobytes()) for q in queries})
+
+
+def test_bench_evaluate_reports_every_phase_and_the_step_metrics(tiny_features, tmp_path):
+    """``trace3d bench evaluate`` on a results-like folder: every phase timed, and the evaluation it
+    times is the step's (no timing asserted: speed is the benchmark's business)."""
+    from trace3d.evaluation.bench import run_bench
+
+    room = tmp_path / "room"
+    (room / "full").mkdir(parents=True)
+    (room / "scene").symlink_to(tiny_features / "scene")
+    (room / "gaussians").symlink_to(tiny_features / "gaussians")
+    (room / "full" / "lift").symlink_to(tiny_features / "lift")
+    out = run_bench(room, "full", {**QUICK, "object_files": True}, out=tmp_path / "kept")
+    (timed,) = out["runs"]
+    assert {"load", "ground_truth", "object_gaussians", "extraction", "nvs", "object_files", "single_point",
+            "panoptic", "pictures", "write"} <= set(timed["phases"])
+    assert all(v["wall_s"] >= 0 and v["cpu_s"] >= 0 for v in timed["phases"].values())
+    saved = json.loads((tmp_path / "kept" / "run0" / "eval" / "metrics.json").read_text())
+    direct = run(tiny_features, tmp_path / "direct", **{"object_files": True})
+    for key in ("extraction", "nvs", "objects", "skipped", "gaussians"):
+        assert json.dumps(saved[key]) == json.dumps(direct[key])

@@ -33,7 +33,8 @@ def run_bench(room: Path, variant: str = "full", params: dict | None = None, out
     room = Path(room)
     lift = room / variant / "lift"
     gaussians = _gaussians_dir(room, variant)
-    for part in (room / "scene", room / "poses", lift / "lift.json", gaussians / "point_cloud.ply"):
+    poses = room / "poses" if (room / "poses").exists() else None  # None: the scene's own cameras
+    for part in (room / "scene", lift / "lift.json", gaussians / "point_cloud.ply"):
         if not part.exists():
             raise Trace3DError(f"{part}: missing; run the pipeline for this room and variant first "
                                f"(e.g. `snakemake --cores 2 {lift}`) or pass --room / --variant.")
@@ -46,7 +47,7 @@ def run_bench(room: Path, variant: str = "full", params: dict | None = None, out
             phases = Phases()
             compiled = compiling.compile_seconds() if hasattr(compiling, "compile_seconds") else None
             wall, cpu = time.perf_counter(), time.process_time()
-            metrics = run_evaluate(room / "scene", room / "poses", gaussians, lift, target / "eval", params,
+            metrics = run_evaluate(room / "scene", poses, gaussians, lift, target / "eval", params,
                                    {"variant": variant}, target / "objects", phases=phases)
             run = {"wall_s": round(time.perf_counter() - wall, 3), "cpu_s": round(time.process_time() - cpu, 3),
                    "phases": phases.to_json(), "objects": len(metrics["objects"])}
