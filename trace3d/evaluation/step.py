@@ -179,32 +179,30 @@ def run_evaluate(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Path, l
     if p.panoptic:
         with ph("panoptic"):
             extra["panoptic"] = _panoptic(lifted, lift_info, gt, cameras, by_name, p)
-    pictures_clock = ph("pictures")
-    pictures_clock.__enter__()
-    rows = []
-    for i in _picture_choice(objects, p.picture_objects):
-        o = objects[i]
-        data = picture_data.get(o["id"])
-        if data is None:
-            continue
-        frame = data["frame"]
-        truth = gt.mask(o["id"], frame)
-        ext = next((v for v in o["extraction"]["views"] if v["frame"] == frame), None)
-        nv = next((v for v in o["nvs"]["views"] if v["frame"] == frame), None)
-        rows.append({
-            "reference": image(o["reference"]), "query": gt.mask(o["id"], o["reference"]),
-            "render": data["render"], "truth_image": image(frame) * truth[..., None], "image": image(frame),
-            "nvs": data["pred"], "truth": truth,
-            "label": f"{o['id']} {o['name']}  (ref. {o['reference']})",
-            "extraction_text": f"{frame}: IoU {ext['iou']:.2f}, PSNR {ext['psnr']:.1f} dB" if ext else frame,
-            "nvs_text": f"{frame}: IoU {nv['iou']:.2f}" if nv else "",
-        })
-    method = lift_info.get("method", "?")
-    name = (label or {}).get("variant", method)
-    title = f"{scene_name(scene_dir, scene.meta)} / {name}: object mIoU " \
-            f"{_fmt(summary['extraction']['mIoU'])}, NVS mIoU {_fmt(summary['nvs']['mIoU'])}"
-    write_pictures(out_dir / "pictures.png", rows, title)
-    pictures_clock.__exit__(None, None, None)
+    with ph("pictures"):
+        rows = []
+        for i in _picture_choice(objects, p.picture_objects):
+            o = objects[i]
+            data = picture_data.get(o["id"])
+            if data is None:
+                continue
+            frame = data["frame"]
+            truth = gt.mask(o["id"], frame)
+            ext = next((v for v in o["extraction"]["views"] if v["frame"] == frame), None)
+            nv = next((v for v in o["nvs"]["views"] if v["frame"] == frame), None)
+            rows.append({
+                "reference": image(o["reference"]), "query": gt.mask(o["id"], o["reference"]),
+                "render": data["render"], "truth_image": image(frame) * truth[..., None], "image": image(frame),
+                "nvs": data["pred"], "truth": truth,
+                "label": f"{o['id']} {o['name']}  (ref. {o['reference']})",
+                "extraction_text": f"{frame}: IoU {ext['iou']:.2f}, PSNR {ext['psnr']:.1f} dB" if ext else frame,
+                "nvs_text": f"{frame}: IoU {nv['iou']:.2f}" if nv else "",
+            })
+        method = lift_info.get("method", "?")
+        name = (label or {}).get("variant", method)
+        title = f"{scene_name(scene_dir, scene.meta)} / {name}: object mIoU " \
+                f"{_fmt(summary['extraction']['mIoU'])}, NVS mIoU {_fmt(summary['nvs']['mIoU'])}"
+        write_pictures(out_dir / "pictures.png", rows, title)
     seconds = time.perf_counter() - start
     metrics = {
         "scene": scene_name(scene_dir, scene.meta),
