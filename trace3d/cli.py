@@ -431,6 +431,12 @@ def _cmd_bench(args: argparse.Namespace) -> None:
         from .masks.prompt_bench import run_bench
 
         result = run_bench(Path(args.room), views=4 if args.quick else 16)
+    elif args.name == "evaluate":
+        from .evaluation.bench import run_bench
+        from .params import load_params_arg
+
+        result = run_bench(Path(args.room), variant=args.variant, params=load_params_arg(args.params),
+                           repeats=args.rounds)
     elif args.name == "lift-forms":
         from .lifting.bench import compare_forms
 
@@ -670,12 +676,14 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="benchmarks; print one JSON object")
     p.add_argument("name", choices=["render", "synthetic", "trace", "lift", "lift-forms", "fit", "fit-sweep",
-                                    "prompts"])
+                                    "prompts", "evaluate"])
     p.add_argument("--room", default="results/room0",
                    help="trace, lift: a fitted room's results folder (scene/, poses/, gaussians/, patches/ or "
                         "merge-paper/instances); prompts: a room's results folder or canonical scene with ground "
                         "truth (the prompt sources' answers scored against it, docs/masks.md)")
-    p.add_argument("--params", help="lift: the lift step's parameters (JSON/YAML or @file) whose wall time is measured")
+    p.add_argument("--params", help="lift: the lift step's parameters (JSON/YAML or @file) whose wall time is measured; "
+                                    "evaluate: the evaluate step's (default {\"protocol\": \"standard\"})")
+    p.add_argument("--variant", default="full", help="evaluate: the variant folder under --room whose lift is evaluated")
     p.add_argument("--quick", action="store_true", help="smaller sizes (smoke run)")
     p.add_argument("--size", action="append", metavar="WxH",
                    help="fit: frame size to measure (repeatable; default 160x120 and 504x378)")
@@ -686,7 +694,8 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--rounds", type=int, default=1,
                    help="fit: run the benchmark this many times (alternating with --baseline's) and report the "
                         "median round per size, every round's time and, with --baseline, each round pair's "
-                        "speedup and their median (default 1)")
+                        "speedup and their median (default 1); evaluate: evaluations in a row (the first may "
+                        "compile kernels)")
     p.add_argument("--rooms", dest="room_list", nargs="+", help="fit-sweep: rooms' results folders (scene/, poses/)")
     p.add_argument("--budgets", nargs="+", default=["20000", "40000", "80000"],
                    help="fit-sweep: Gaussian budgets (max_gaussians)")
