@@ -450,7 +450,7 @@ class TestTrace:
         assert float((weights.sum(0).reshape(camera.height, camera.width) - alpha).abs().max()) <= 1e-5
 
     def test_coalesce_sums_repeats_in_the_order_they_come(self):
-        from trace3d.render.kernels import coalesce_triplets
+        from trace3d.render.kernels.coalesce import coalesce_triplets
 
         # 1 + 2^-24 rounds back to 1 in float32, 2^-24 + 2^-24 = 2^-23 does not: the order shows
         e = np.float32(2.0 ** -24)
@@ -462,7 +462,7 @@ class TestTrace:
 
     @pytest.mark.parametrize("per_row", [5, 200])  # rows sorted by insertion, and by merge sort
     def test_coalesce_matches_a_dictionary(self, per_row):
-        from trace3d.render.kernels import coalesce_triplets
+        from trace3d.render.kernels.coalesce import coalesce_triplets
 
         rng = np.random.default_rng(per_row)
         n, size = 40, 40 * per_row
@@ -609,7 +609,7 @@ class TestValuesOnlyBackward:
 
     @pytest.mark.parametrize("channels", [3, 5, 16, 37])  # with the normals: 6, 8 (every fixed plane), 19, 40
     def test_same_bits_as_the_full_backward(self, channels, monkeypatch):
-        from trace3d.render import kernels
+        from trace3d.render.kernels import rasterize as kernels  # where the autograd Function looks them up
 
         splats, camera, features = make_scene(channels, channels=channels)
         gen = torch.Generator().manual_seed(channels)
@@ -637,7 +637,9 @@ class TestValuesOnlyBackward:
         # the kernel's tail columns (the normals' values, after the features) through the autograd function
         # directly, against the full backward; a non-finite upstream gradient at pixels no splat blended
         # changes nothing (the full backward ignores it there as well)
-        from trace3d.render.kernels import Binning, _Rasterize, pack_geometry
+        from trace3d.render.kernels.binning import Binning
+        from trace3d.render.kernels.rasterize import _Rasterize
+        from trace3d.render.kernels.tiles import pack_geometry
 
         splats, camera, features = make_scene(9, n=60, channels=5)
         proj = project(splats, camera, 0.01)
@@ -663,7 +665,8 @@ class TestValuesOnlyBackward:
 @pytest.mark.parametrize("n_chunks", [1, 2, 3])
 def test_backward_chunk_sum_matches_numpy(n_chunks):
     """The backward's per-worker buffers, summed and split in one numba pass, against numpy's sum."""
-    from trace3d.render.kernels import GEOM_GRAD_COLS, sum_chunks
+    from trace3d.render.kernels.backward import sum_chunks
+    from trace3d.render.kernels.tiles import GEOM_GRAD_COLS
 
     grads = np.random.default_rng(n_chunks).normal(size=(n_chunks, 57, GEOM_GRAD_COLS + 4)).astype(np.float32)
     g_geom, g_vals = sum_chunks(grads)
@@ -676,7 +679,7 @@ def test_backward_chunk_sum_matches_numpy(n_chunks):
 @pytest.mark.parametrize("n_chunks", [1, 2, 3])
 def test_value_chunk_sum_matches_numpy(n_chunks):
     """The values-only backward's per-worker buffers summed in chunk order, the columns nobody asked for zero."""
-    from trace3d.render.kernels import sum_value_chunks
+    from trace3d.render.kernels.backward_values import sum_value_chunks
 
     grads = np.random.default_rng(n_chunks).normal(size=(n_chunks, 57, 5)).astype(np.float32)
     out = sum_value_chunks(grads, 8)
@@ -687,7 +690,7 @@ def test_value_chunk_sum_matches_numpy(n_chunks):
 def test_radix_argsort_is_numpys_stable_order():
     """The binning's depth order (radix sort of float32 bits) is numpy's stable argsort exactly: random
     depths, many ties, negative values, denormals, +-0.0 (equal for numpy), NaNs (last) and infinities."""
-    from trace3d.render.kernels import stable_argsort_f32
+    from trace3d.render.kernels.binning import stable_argsort_f32
 
     rng = np.random.default_rng(11)
     special = np.array([0.0, -0.0, 1.0, -1.0, np.nan, -np.nan, np.inf, -np.inf, 0.0, np.nan, -0.0, 2.0], np.float32)
@@ -700,7 +703,7 @@ def test_radix_argsort_is_numpys_stable_order():
 
 
 def test_row_gather_equals_numpy_fancy_indexing():
-    from trace3d.render.kernels import gather_rows_as
+    from trace3d.render.kernels.binning import gather_rows_as
 
     rng = np.random.default_rng(0)
     boxes = rng.integers(-5, 500, (3000, 4))
@@ -710,13 +713,3 @@ def test_row_gather_equals_numpy_fancy_indexing():
     out = gather_rows_as(geom, rows, np.float32)
     assert out.dtype == np.float32 and out.flags.c_contiguous and np.array_equal(out, geom[rows])
     assert gather_rows_as(geom, rows[:0], np.float32).shape == (0, 16)
-
-
-def test_render_bench_runs_and_reports_its_figures():
-    from trace3d.render.bench import run_bench
-
-    result = run_bench(quick=True)
-    for key in ("speedup_fwd_bwd", "trace_over_forward", "pair_evals_per_s"):
-        assert result[key] > 0, key
-    kernel = result["large"]["kernel"]
-    assert kernel["pairs"] > 0 and kernel["trace_ms"] > 0 and kernel["kernel_forward_ms"] > 0

@@ -221,7 +221,8 @@ def test_trace_views_matches_trace_and_counts_pixels():
 
 
 def test_trace_memory_batches_give_the_same_weights():
-    from trace3d.render.kernels import coalesce_triplets, trace_triplets
+    from trace3d.render.kernels.coalesce import coalesce_triplets
+    from trace3d.render.kernels.trace import trace_triplets
     from trace3d.render.projection import project
 
     model, _, cameras = two_objects()
