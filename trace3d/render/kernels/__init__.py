@@ -1,9 +1,21 @@
 """CPU tile kernels (numba) for 2DGS blending, their hand-written backward, and GIT tracing.
 
-This file is longer than the others (~1,500 lines) on purpose: the forward, backward and trace kernels
-must make bit-identical decisions for every pixel-splat pair, so they sit beside the inline helpers
-and the field constants they share (:func:`splat_geometry`, :func:`eval_lane`, the ``F_*`` offsets),
-with the thin torch glue that packs their inputs at the end.
+    tiles.py            tile size, the input layout (``pack_geometry``), fast-math flags, and the per-lane
+                        evaluation that forward, backward and trace share (:func:`~.tiles.eval_lane`), so
+                        that they make bit-identical decisions for every pixel-splat pair
+    binning.py          the depth order (radix argsort), tile lists, row gather/scatter, ``Binning``
+    forward.py          front-to-back blending (``forward_kernel``)
+    backward.py         its hand-written backward, the chunk sum, the background's share
+    backward_values.py  the values-only backward (frozen geometry)
+    trace.py            GIT: per splat and label, the weight sums (``trace_kernel``, ``trace_triplets``)
+    coalesce.py         the trace's triplets as a sparse matrix and its per-splat argmax
+    rasterize.py        the autograd Function and ``rasterize``, what :func:`trace3d.render.render` calls
+    glue.py             the per-Gaussian kernels around the tiles: camera points, splat frames, SH colours
+
+(This package was ``render/kernels.py`` and ``render/glue_kernels.py``; every definition moved
+unchanged.)  Numba's cache does not see changes in another file: after editing ``tiles.py``,
+``binning.py``, ``glue.py`` or the thresholds in ``render/projection.py``, clear ``NUMBA_CACHE_DIR``
+(docs/architecture.md).
 
 Kernel boundary (small on purpose, so that a CUDA back end can slot in behind it): per splat the
 kernels read
