@@ -25,7 +25,7 @@ import torch.nn.functional as F
 
 from ..geometry import depth_to_normal, depth_to_points  # noqa: F401  (their home is trace3d.geometry; kept importable here)
 from .kernels.losses import (fused_normal_consistency, fused_normal_consistency_applies, fused_photometric,
-                           fused_photometric_applies, fused_ssim, fused_ssim_applies)
+                             fused_photometric_applies, fused_ssim, fused_ssim_applies)
 
 SSIM_C1 = 0.01**2
 SSIM_C2 = 0.03**2
