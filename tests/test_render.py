@@ -770,7 +770,8 @@ def brute_force_render(splats: Splats, camera: Camera, features: torch.Tensor, b
     out_med = torch.zeros(len(pix), dtype=dt)
     trans = torch.ones(len(pix), dtype=dt)
     stopped = torch.zeros(len(pix), dtype=torch.bool)
-    order = [int(k) for k in torch.sort(p[:, 2].detach(), stable=True).indices if float(p[k, 2]) > near]
+    depth_c = p[:, 2].detach()
+    order = [int(k) for k in torch.sort(depth_c, stable=True).indices if float(depth_c[k]) > near]
     for k in order:
         lam = (n_plane[k] @ p[k]) / (rays @ n_plane[k])  # ray parameter of the plane hit
         hit = rays * lam[:, None]
@@ -822,13 +823,11 @@ def test_kernels_match_a_brute_force_per_pixel_twin(seed, rotate):
         grads = torch.autograd.grad(loss, [*sp, feats])
         results[kind] = ({name: outs[name].detach().double() for name in names}, [g.double() for g in grads])
     (k_out, k_grads), (b_out, b_grads) = results["kernel"], results["brute"]
-    assert float(b_out["alpha"].max()) > 0.9 and float((b_out["alpha"] > 0.01).double().mean()) > 0.3
+    assert float(b_out["alpha"].max()) > 0.8 and float((b_out["alpha"] > 0.01).double().mean()) > 0.2
     for name in names:
-        err = (k_out[name] - b_out[name]).abs()
-        scale = float(b_out[name].abs().max())
-        # float32 kernels against float64: the same decisions everywhere but in a few boundary pixels
-        assert float((err > 1e-4 * scale + 1e-6).double().mean()) < 0.005, name
-        assert float(err.mean()) < 1e-5 * scale + 1e-7, name
-    for i, (a, b) in enumerate(zip(k_grads, b_grads)):
-        assert float(b.abs().max()) > 0, i
-        assert rel_err(a, b) < 1e-3, (i, rel_err(a, b))
+        # float32 kernels against float64, every pixel (measured: at most 4e-6 of the largest value)
+        err = float((k_out[name] - b_out[name]).abs().max())
+        assert err <= 2e-5 * float(b_out[name].abs().max()) + 1e-6, (name, err)
+    for i, (a, b) in enumerate(zip(k_grads, b_grads)):  # means, quats, scales, opacities, features
+        assert float(b.abs().max()) > 1.0, i
+        assert rel_err(a, b) < 2e-4, (i, rel_err(a, b))  # measured: at most 3.3e-5
