@@ -205,7 +205,7 @@ def test_synthetic_bench_reports_its_figures():
     assert set(result) == {"views", "resolution", "supersample", "compile_s", "total_s", "ms_per_view", "cpu_s",
                            "numba_threads", "load_average_1min"}
     assert result["views"] == 8 and result["resolution"] == [160, 120] and result["supersample"] >= 1
-    assert result["ms_per_view"] == pytest.approx(1000 * result["total_s"] / 8, abs=0.01)
+    assert result["ms_per_view"] == pytest.approx(1000 * result["total_s"] / 8, abs=0.1)  # both rounded
     assert 0 < result["total_s"] < 600 and result["compile_s"] >= 0 and result["cpu_s"] >= 0
     assert result["numba_threads"] >= 1
     json.dumps(result)
