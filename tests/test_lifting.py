@@ -17,7 +17,7 @@ from trace3d.errors import ConfigError, Trace3DError
 from trace3d.lifting import ObjectQuery, load_lifted
 from trace3d.lifting.contrastive import (ContrastiveParams, ContrastiveTrainer, contrastive_loss,
                                          contrastive_loss_reference)
-from trace3d.lifting.loss_kernel import fused_contrastive_loss
+from trace3d.lifting.kernels.contrastive import fused_contrastive_loss
 from trace3d.lifting.query import FeatureLifted, QueryParams, find_query_points, iou, trace_object
 from trace3d.render import render
 from trace3d.render.pixel_weights import pixel_weights
@@ -235,7 +235,7 @@ def test_scatter_into_a_buffer_does_not_depend_on_the_split():
 
 
 def test_cpu_adam_matches_torch_adam_and_clears_the_gradient():
-    from trace3d.training.adam_kernel import CpuAdam
+    from trace3d.training.kernels.adam import CpuAdam
 
     gen = torch.Generator().manual_seed(5)
     start = torch.randn(40, 7, generator=gen)
@@ -280,7 +280,7 @@ def test_fused_loss_pads_odd_sizes(dim):
 def test_instance_order_is_a_stable_argsort():
     """The loss kernel's pixel order (counting sort over a small label range, merge sort otherwise) is
     exactly numpy's stable argsort, ties in their original order."""
-    from trace3d.lifting.loss_kernel import _instance_order
+    from trace3d.lifting.kernels.contrastive import _instance_order
 
     rng = np.random.default_rng(8)
     cases = [rng.integers(1, 12, 1024), rng.integers(-5, 3, 300), rng.integers(0, 10**9, 500),

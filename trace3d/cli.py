@@ -390,15 +390,15 @@ def _parse_size(text: str) -> tuple[int, int]:
 
 def _cmd_bench(args: argparse.Namespace) -> None:
     if args.name == "render":
-        from .render.bench import run_bench
+        from .bench.render import run_bench
 
         result = run_bench(quick=args.quick)
     elif args.name == "synthetic":
-        from .datasets.synthetic.bench import run_bench
+        from .bench.synthetic import run_bench
 
         result = run_bench(quick=args.quick)
     elif args.name == "fit":
-        from .training.bench import run_rounds
+        from .bench.fit import run_rounds
 
         sizes = [_parse_size(text) for text in args.size] if args.size else None
         if args.rounds < 1:
@@ -406,10 +406,10 @@ def _cmd_bench(args: argparse.Namespace) -> None:
         result = run_rounds(args.rounds, quick=args.quick, sizes=sizes, iterations=args.iterations,
                             baseline=Path(args.baseline) if args.baseline else None)
     elif args.name == "fit-sweep":
-        from .training.bench import run_sweep
+        from .bench.fit import run_sweep
 
         if args.merge:
-            from .training.bench import merge_sweeps
+            from .bench.fit import merge_sweeps
 
             result = merge_sweeps([Path(f) for f in args.merge], Path(args.plot) if args.plot else None)
         else:
@@ -419,16 +419,16 @@ def _cmd_bench(args: argparse.Namespace) -> None:
             result = run_sweep([Path(r) for r in args.room_list], [int(b) for b in args.budgets],
                                [float(x) for x in args.scales], Path(args.plot) if args.plot else None)
     elif args.name == "trace":
-        from .tracing.bench import run_bench
+        from .bench.trace import run_bench
 
         result = run_bench(Path(args.room), quick=args.quick)
     elif args.name == "lift":
-        from .lifting.bench import run_bench
+        from .bench.lift import run_bench
         from .params import load_params_arg
 
         result = run_bench(Path(args.room), quick=args.quick, params=load_params_arg(args.params))
     elif args.name == "prompts":
-        from .masks.prompt_bench import run_bench
+        from .bench.prompts import run_bench
 
         result = run_bench(Path(args.room), views=4 if args.quick else 16)
     elif args.name == "evaluate":
@@ -438,7 +438,7 @@ def _cmd_bench(args: argparse.Namespace) -> None:
         result = run_bench(Path(args.room), variant=args.variant, params=load_params_arg(args.params),
                            repeats=args.rounds)
     elif args.name == "lift-forms":
-        from .lifting.bench import compare_forms
+        from .bench.lift import compare_forms
 
         result = compare_forms(Path(args.room), iterations=300 if args.quick else 1500)
     else:  # argparse restricts choices; kept for clarity
