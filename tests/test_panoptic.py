@@ -266,7 +266,7 @@ def test_single_point_shares_traced_objects_only_when_the_query_points_agree(tin
 def test_bench_evaluate_reports_every_phase_and_the_step_metrics(tiny_features, tmp_path):
     """``trace3d bench evaluate`` on a results-like folder: every phase timed, and the evaluation it
     times is the step's (no timing asserted: speed is the benchmark's business)."""
-    from trace3d.evaluation.bench import run_bench
+    from trace3d.bench.evaluate import run_bench
 
     room = tmp_path / "room"
     (room / "full").mkdir(parents=True)

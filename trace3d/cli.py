@@ -432,7 +432,7 @@ def _cmd_bench(args: argparse.Namespace) -> None:
 
         result = run_bench(Path(args.room), views=4 if args.quick else 16)
     elif args.name == "evaluate":
-        from .evaluation.bench import run_bench
+        from .bench.evaluate import run_bench
         from .params import load_params_arg
 
         result = run_bench(Path(args.room), variant=args.variant, params=load_params_arg(args.params),

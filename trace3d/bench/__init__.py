@@ -8,6 +8,7 @@ imports this package, so a change to a benchmark reruns no step.
     trace.py      ``bench trace``: GIT, merge and refinement on a fitted room
     lift.py       ``bench lift`` (one contrastive iteration, sparse path vs rasterizer) and ``bench lift-forms``
     prompts.py    ``bench prompts``: how well each prompt source answers self-prompting's point prompts
+    evaluate.py   ``bench evaluate``: the evaluate step of one (scene, variant, protocol), seconds per phase
 
 Each returns one JSON-serialisable dict, which ``trace3d bench`` prints (and writes with ``--out``).
 """

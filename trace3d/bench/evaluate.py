@@ -28,7 +28,7 @@ def run_bench(room: Path, variant: str = "full", params: dict | None = None, out
     ``repeats`` times; report every run's phases (the first may include numba compilation)."""
     from .. import compiling
     from ..cputarget import describe
-    from .step import Phases, run_evaluate
+    from ..evaluation.step import Phases, run_evaluate
 
     room = Path(room)
     lift = room / variant / "lift"
