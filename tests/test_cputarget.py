@@ -68,7 +68,7 @@ def test_bench_baseline_runs_without_the_current_entry_points_target(monkeypatch
     the environment is passed on."""
     import subprocess as sp
 
-    from trace3d.training import bench
+    from trace3d.bench import fit as bench
 
     checkout = tmp_path / "checkout"
     (checkout / "trace3d" / "training").mkdir(parents=True)

@@ -155,6 +155,24 @@ def test_protocols_choose_views_and_reference(tmp_path):
     assert flat.info[1][1].occluded is None and flat.reference(1) == "b"
 
 
+def test_ground_truth_view_facts_equal_the_per_object_mask_twin(tmp_path):
+    """GroundTruth counts pixels per leaf id once per view and builds a mask only where the object is
+    seen: every view fact and mask equals the per-object :func:`object_mask` computation."""
+    for with_depth in (True, False):
+        scene = write_hand_scene(tmp_path / f"s{with_depth}", with_depth=with_depth)
+        params = EvaluateParams(min_pixels=10)
+        gt = GroundTruth(scene, scene.cameras, params)
+        for oid in gt.object_ids:
+            for cam, info in zip(scene.cameras, gt.info[oid]):
+                mask = object_mask(scene.instances(cam.name), gt.members[oid])
+                pixels = int(mask.sum())
+                occ = occluded_fraction(mask, scene.depth(cam.name), params.occlusion_depth_ratio) \
+                    if pixels and with_depth else None
+                assert (info.frame, info.pixels, info.occluded, info.border) == \
+                    (cam.name, pixels, occ, touches_border(mask) if pixels else False)
+                np.testing.assert_array_equal(gt.mask(oid, cam.name), mask)
+
+
 def test_params_protocol_values_and_errors():
     assert EvaluateParams().min_pixels == 50 and EvaluateParams().accuracy == "accuracy"
     official = EvaluateParams(protocol="official")

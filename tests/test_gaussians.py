@@ -1,4 +1,4 @@
-"""Tests of trace3d.gaussians: SH evaluation, rotations, initialisations and the PLY round trip."""
+"""Tests of trace3d.gaussians (and trace3d.render.sh): SH evaluation, rotations, initialisations and the PLY round trip."""
 
 from __future__ import annotations
 
@@ -10,19 +10,17 @@ import torch
 
 from trace3d.errors import SceneFormatError, Trace3DError
 from trace3d.gaussians import (
-    SH_C0,
     GaussianModel,
-    eval_sh,
     init_from_depth,
     init_from_points,
     init_random,
     _nearest_neighbour_scales_reference,
     nearest_neighbour_scales,
-    num_sh_rest,
     quat_to_rotmat,
     quats_aligning_z_to,
     rgb_to_sh,
 )
+from trace3d.render.sh import SH_C0, eval_sh, num_sh_rest
 from trace3d.datasets.depth_init import depth_points_and_normals
 from trace3d.scene import Camera, Scene, write_cameras, write_frame
 

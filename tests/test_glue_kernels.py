@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from trace3d.render import glue_kernels as gk
+from trace3d.render.kernels import glue as gk
 from trace3d.render.projection import camera_tensors
 from trace3d.scene import Camera
 

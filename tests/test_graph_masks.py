@@ -294,7 +294,7 @@ def test_schema_matches_the_dataclasses():
 
 def test_prompt_bench_scores_the_oracle_and_the_graph(rooms, tmp_path):
     from trace3d.cli import main
-    from trace3d.masks.prompt_bench import run_bench
+    from trace3d.bench.prompts import run_bench
 
     room, photos = rooms
     result = run_bench(room.root, views=2, min_pixels=30, sources={

@@ -219,7 +219,7 @@ def test_readme_config_example_dry_runs(tmp_path):
     snakemake = shutil.which("snakemake", path=str(Path(sys.executable).parent)) or shutil.which("snakemake")
     if snakemake is None:
         pytest.skip("snakemake is not installed")
-    section = (repo / "README.md").read_text().split("## Your own photos", 1)[1]
+    section = (repo / "docs" / "capture.md").read_text().split("## Your own photos", 1)[1]
     config = yaml.safe_load(re.search(r"```yaml\n(.*?)```", section, flags=re.S).group(1))
     assert config["scenes"]["plant"]["kind"] == "images"
     config["data_root"] = str(tmp_path / "captures")

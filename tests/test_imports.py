@@ -63,3 +63,99 @@ def test_cli_lets_only_the_lift_commands_spin():
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr[-3000:]
     assert result.stdout.strip().splitlines()[-3:] == ["10000", "10000", "None"]
+
+
+# ----------------------------------------------------------------------------------------------
+# Which way the imports flow (docs/architecture.md), read from the source: every import statement,
+# at module level or inside a function
+# ----------------------------------------------------------------------------------------------
+
+PACKAGE = REPO / "trace3d"
+
+
+def _imports() -> dict[str, set[str]]:
+    """Module name -> the trace3d modules (or packages) it imports anywhere in its source."""
+    import ast
+
+    out = {}
+    for path in PACKAGE.rglob("*.py"):
+        parts = list(path.relative_to(REPO).with_suffix("").parts)
+        is_init = parts[-1] == "__init__"
+        name = ".".join(parts[:-1] if is_init else parts)
+        here = name.split(".") if is_init else name.split(".")[:-1]
+        targets = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = here[:len(here) - node.level + 1]
+                    module = ".".join(base + ([node.module] if node.module else []))
+                else:
+                    module = node.module or ""
+                if module.startswith("trace3d"):
+                    targets.add(module)
+                    targets.update(f"{module}.{a.name}" for a in node.names
+                                   if (PACKAGE.parent / f"{module}.{a.name}".replace(".", "/")).with_suffix(".py").is_file()
+                                   or (PACKAGE.parent / f"{module}.{a.name}".replace(".", "/")).is_dir())
+            elif isinstance(node, ast.Import):
+                targets.update(a.name for a in node.names if a.name.startswith("trace3d"))
+        out[name] = targets
+    return out
+
+
+def _unit(module: str) -> str:
+    """The package a module belongs to for the layering (trace3d.render.kernels.tiles -> render; a
+    top-level module is its own unit)."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else "trace3d"
+
+
+def test_the_benchmark_harnesses_are_imported_by_the_cli_alone():
+    importers = sorted(m for m, targets in _imports().items()
+                       if any(t == "trace3d.bench" or t.startswith("trace3d.bench.") for t in targets)
+                       and not m.startswith("trace3d.bench") and m != "trace3d.cli")
+    assert importers == []
+
+
+def test_the_render_package_imports_neither_the_model_nor_a_later_stage():
+    """render/ (and its kernels) sit below the model: gaussians.py imports render.sh and
+    render.kernels.glue, never the reverse (the former eval_sh circle)."""
+    allowed = {"render", "scene", "geometry", "errors"}
+    bad = {m: sorted(t for t in targets if _unit(t) not in allowed)
+           for m, targets in _imports().items() if _unit(m) == "render"}
+    assert {m: t for m, t in bad.items() if t} == {}
+
+
+def test_kernel_packages_import_only_their_stage_and_the_render_kernels():
+    allowed = {"errors", "geometry", "render"}
+    bad = {}
+    for m, targets in _imports().items():
+        parts = m.split(".")
+        if len(parts) > 2 and parts[2] == "kernels":
+            wrong = sorted(t for t in targets if _unit(t) not in allowed | {parts[1]}
+                           or (_unit(t) == "render" and parts[1] != "render" and not t.startswith("trace3d.render.kernels")))
+            if wrong:
+                bad[m] = wrong
+    assert bad == {}
+
+
+def test_the_packages_form_no_import_cycle():
+    graph: dict[str, set[str]] = {}
+    for m, targets in _imports().items():
+        graph.setdefault(_unit(m), set()).update(_unit(t) for t in targets if _unit(t) != _unit(m))
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(node):
+        state[node] = 1
+        stack.append(node)
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == 1:
+                raise AssertionError("import cycle: " + " -> ".join(stack[stack.index(nxt):] + [nxt]))
+            if nxt not in state:
+                visit(nxt)
+        stack.pop()
+        state[node] = 2
+
+    for node in sorted(graph):
+        if node not in state:
+            visit(node)

@@ -17,7 +17,7 @@ from trace3d.errors import ConfigError, Trace3DError
 from trace3d.lifting import ObjectQuery, load_lifted
 from trace3d.lifting.contrastive import (ContrastiveParams, ContrastiveTrainer, contrastive_loss,
                                          contrastive_loss_reference)
-from trace3d.lifting.loss_kernel import fused_contrastive_loss
+from trace3d.lifting.kernels.contrastive import fused_contrastive_loss
 from trace3d.lifting.query import FeatureLifted, QueryParams, find_query_points, iou, trace_object
 from trace3d.render import render
 from trace3d.render.pixel_weights import pixel_weights
@@ -235,7 +235,7 @@ def test_scatter_into_a_buffer_does_not_depend_on_the_split():
 
 
 def test_cpu_adam_matches_torch_adam_and_clears_the_gradient():
-    from trace3d.training.adam_kernel import CpuAdam
+    from trace3d.training.kernels.adam import CpuAdam
 
     gen = torch.Generator().manual_seed(5)
     start = torch.randn(40, 7, generator=gen)
@@ -280,7 +280,7 @@ def test_fused_loss_pads_odd_sizes(dim):
 def test_instance_order_is_a_stable_argsort():
     """The loss kernel's pixel order (counting sort over a small label range, merge sort otherwise) is
     exactly numpy's stable argsort, ties in their original order."""
-    from trace3d.lifting.loss_kernel import _instance_order
+    from trace3d.lifting.kernels.contrastive import _instance_order
 
     rng = np.random.default_rng(8)
     cases = [rng.integers(1, 12, 1024), rng.integers(-5, 3, 300), rng.integers(0, 10**9, 500),
@@ -337,6 +337,15 @@ def test_query_kernels_give_numpys_distances_and_masks_to_the_bit(d):
     mask = q.mask(fmap)
     assert np.array_equal(mask, (want <= q.thresholds[:, None, None]).any(0))
     assert 0 < mask.sum() < mask.size
+    # one query point at a time, thresholds at occurring distances (and one float32 step below)
+    # across the whole range: the kernel's early rejection after eight dimensions never changes a pixel
+    for k in range(4):
+        one = QueryPoints(feats[k:k + 1].copy(), np.zeros(1, np.float32), np.zeros((1, 2), np.int64),
+                          np.zeros(1, np.float32))
+        for t in np.sort(want[k].ravel())[::37]:
+            for thr in (t, np.nextafter(t, np.float32(0))):
+                one.thresholds = np.array([thr], np.float32)
+                assert np.array_equal(one.mask(fmap), want[k] <= one.thresholds[0])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -368,6 +377,30 @@ def test_trace_object_majority():
     got = trace_object(model, cameras, masks)
     visible = trace_object(model, cameras, [np.ones_like(m) for m in masks])  # every seen Gaussian
     assert (got[visible] == (truth[visible] == 1)).mean() > 0.95
+
+
+def test_object_weights_kernel_equals_its_numpy_twin_bit_for_bit():
+    """The masked-row kernel (rows of the mask's pixels only) against bincount over every entry."""
+    from trace3d.lifting.query import object_weights, object_weights_numpy
+    from trace3d.render.pixel_weights import PixelWeights
+
+    rng = np.random.default_rng(5)
+    n, h, w = 300, 9, 11
+    views, masks = [], []
+    for v in range(4):
+        pixels = np.sort(rng.choice(h * w, size=70 + v, replace=False)).astype(np.int64)
+        counts = rng.integers(0, 12, size=pixels.size)
+        indptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        indices = np.concatenate([np.sort(rng.choice(n, size=c, replace=False)) for c in counts]).astype(np.int32)
+        weights = (rng.random(indptr[-1]) ** 3).astype(np.float32)
+        views.append(PixelWeights(pixels, indptr, indices, weights, n, w, h))
+        masks.append(rng.random((h, w)) < 0.4)
+    fast, slow = object_weights(views, masks), object_weights_numpy(views, masks)
+    assert fast.dtype == slow.dtype == np.float64 and (slow > 0).sum() > 50
+    assert fast.tobytes() == slow.tobytes()
+    # twice in a row: the kernel's scratch is clean between calls
+    assert object_weights(views, masks).tobytes() == slow.tobytes()
+    assert object_weights(views, [np.zeros((h, w), bool)] * 4).tobytes() == np.zeros(n).tobytes()
 
 
 def test_trace_object_from_pixel_weights_matches_the_rasterized_trace():

@@ -222,3 +222,63 @@ def test_bad_panoptic_parameters_are_refused(tiny_features, tmp_path):
 
     with pytest.raises((Trace3DError, ValueError)):
         run(tiny_features, tmp_path / "x", panoptic_min_share=0.0)
+
+
+def test_single_point_shares_traced_objects_only_when_the_query_points_agree(tiny_features):
+    """``with_query`` siblings share the traced object Gaussians by query-point content: each answer
+    equals that of a fresh lifted scene that shares nothing (the twin)."""
+    from trace3d.evaluation.groundtruth import GroundTruth
+    from trace3d.evaluation.params import EvaluateParams
+    from trace3d.lifting.query import FeatureLifted, QueryParams
+    from trace3d.scene import Scene
+    from trace3d.tracing.git import load_fitted
+
+    root = tiny_features
+    scene = Scene.read(root / "scene")
+    model, cameras = load_fitted(scene, None, root / "gaussians")
+    train = [c for c in cameras if c.split == "train"]
+    features = np.load(root / "lift" / "features.npy")
+    gt = GroundTruth(scene, cameras, EvaluateParams(**{k: v for k, v in QUICK.items() if not k.startswith("panoptic")}))
+    queries = [q for q in (gt.query(oid) for oid in gt.object_ids) if q is not None]
+    assert queries
+    lifted = FeatureLifted(model, features, train)
+    many = [lifted.object_gaussians(q).copy() for q in queries]
+    one = lifted.with_query(max_queries=1)
+    shared = [one.object_gaussians(q) for q in queries]
+    fresh_many = FeatureLifted(model, features, train)
+    fresh_one = FeatureLifted(model, features, train, QueryParams(max_queries=1))
+    for q, a, b in zip(queries, many, shared):
+        np.testing.assert_array_equal(a, fresh_many.object_gaussians(q))
+        np.testing.assert_array_equal(b, fresh_one.object_gaussians(q))
+        # the stacked one-call masks against each view's own mask
+        points = lifted.query_points(q)
+        stacked = lifted.train_masks(points)
+        assert len(stacked) == len(train) and lifted._stack[0] is not None
+        for cam, m in zip(train, stacked):
+            np.testing.assert_array_equal(m, points.mask(fresh_many.feature_map(cam)))
+    # what the cache holds: one entry per distinct query-point content
+    assert len(lifted._by_points) == len({(lifted.query_points(q).features.tobytes(),
+                                           lifted.query_points(q).thresholds.tobytes()) for q in queries}
+                                         | {(one.query_points(q).features.tobytes(),
+                                             one.query_points(q).thresholds.tobytes()) for q in queries})
+
+
+def test_bench_evaluate_reports_every_phase_and_the_step_metrics(tiny_features, tmp_path):
+    """``trace3d bench evaluate`` on a results-like folder: every phase timed, and the evaluation it
+    times is the step's (no timing asserted: speed is the benchmark's business)."""
+    from trace3d.bench.evaluate import run_bench
+
+    room = tmp_path / "room"
+    (room / "full").mkdir(parents=True)
+    (room / "scene").symlink_to(tiny_features / "scene")
+    (room / "gaussians").symlink_to(tiny_features / "gaussians")
+    (room / "full" / "lift").symlink_to(tiny_features / "lift")
+    out = run_bench(room, "full", {**QUICK, "object_files": True}, out=tmp_path / "kept")
+    (timed,) = out["runs"]
+    assert {"load", "ground_truth", "object_gaussians", "extraction", "nvs", "object_files", "single_point",
+            "panoptic", "pictures", "write"} <= set(timed["phases"])
+    assert all(v["wall_s"] >= 0 and v["cpu_s"] >= 0 for v in timed["phases"].values())
+    saved = json.loads((tmp_path / "kept" / "run0" / "eval" / "metrics.json").read_text())
+    direct = run(tiny_features, tmp_path / "direct", **{"object_files": True})
+    for key in ("extraction", "nvs", "objects", "skipped", "gaussians"):
+        assert json.dumps(saved[key]) == json.dumps(direct[key])

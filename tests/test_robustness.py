@@ -77,3 +77,32 @@ def test_bad_spec_is_refused(tmp_path):
         write_robustness({"runs": []}, tmp_path / "t.md")
     with pytest.raises(Trace3DError, match="lacks eval"):
         write_robustness({"runs": [{"scene": "a", "level": 0, "variant": "v"}]}, tmp_path / "t.md")
+
+
+def test_paired_effects_per_level(tmp_path):
+    # two rooms, three variants, two levels: full - no_merge is +10 and +20 points at level 0.5 (mean 15),
+    # -5 and -5 at level 1 (no spread: interval 0); PQ is read where present
+    runs = []
+    values = {("r1", 0.5): {"full": 0.6, "no_merge": 0.5, "both_off": 0.4},
+              ("r2", 0.5): {"full": 0.7, "no_merge": 0.5, "both_off": 0.5},
+              ("r1", 1.0): {"full": 0.4, "no_merge": 0.45, "both_off": 0.3},
+              ("r2", 1.0): {"full": 0.3, "no_merge": 0.35, "both_off": 0.3}}
+    for (scene, level), by_variant in values.items():
+        for variant, obj in by_variant.items():
+            folder = tmp_path / f"{scene}@{level}" / variant / "eval"
+            folder.mkdir(parents=True)
+            (folder / "metrics.json").write_text(json.dumps({
+                "protocol": "standard", "extraction": {"mIoU": obj, "PSNR": 20.0}, "nvs": {"mIoU": obj},
+                "panoptic": {"PQ": obj / 2}, "single_point": {"nvs": {"mIoU": obj}}}))
+            runs.append({"scene": scene, "level": level, "variant": variant, "eval": str(folder)})
+    write_robustness({"runs": runs}, tmp_path / "t.md", tmp_path / "t.png")
+    text = (tmp_path / "t.md").read_text()
+    merge = text.split("### merge: full - no_merge")[1].split("###")[0]
+    # level 0.5: differences 10 and 20 -> mean 15, t(0.975, 1) * std(ddof=1) / sqrt 2 = 12.706 * 7.071 / 1.414
+    assert re.search(r"\|\s+0\.5\s+\|\s+\+15\.0 ± 63\.5 \(2/2\)", merge)
+    assert re.search(r"\|\s+1\s+\|\s+-5\.0 ± 0\.0 \(0/2\)", merge)
+    assert "+7.5 ± 31.8 (2/2)" in merge  # PQ = half of the object mIoU here
+    assert "### density control: no_merge - both_off" in text and "## PQ^scene" in text
+    csv = pd.read_csv(tmp_path / "t.csv")
+    assert csv["PQ scene"].notna().all() and csv["NVS mIoU 1pt"].notna().all()
+    assert (tmp_path / "t.png").stat().st_size > 1000

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -353,10 +352,3 @@ def test_trajectory_is_a_closed_outward_loop():
     angles = np.unwrap(np.arctan2(forward[:, 1], forward[:, 0]))
     assert abs(angles[-1] - angles[0]) > math.radians(330)  # a full turn
     assert sum(c.split == "test" for c in cams) == params.num_views // params.test_every
-
-
-def test_run_bench_quick_reports_timings():
-    result = syn.run_bench(quick=True)
-    assert result["views"] == 8 and result["resolution"] == [160, 120]
-    assert result["total_s"] > 0 and result["ms_per_view"] > 0
-    json.dumps(result)

@@ -221,7 +221,8 @@ def test_trace_views_matches_trace_and_counts_pixels():
 
 
 def test_trace_memory_batches_give_the_same_weights():
-    from trace3d.render.kernels import coalesce_triplets, trace_triplets
+    from trace3d.render.kernels.coalesce import coalesce_triplets
+    from trace3d.render.kernels.trace import trace_triplets
     from trace3d.render.projection import project
 
     model, _, cameras = two_objects()
@@ -291,11 +292,70 @@ def test_split_halves_scales_inside_parent_support():
     assert (children.extras[GENERATION] == 0).all()  # the strategy marks children, not split_gaussians
 
 
+# Lines of the released code (github.com/trace-3d/Trace3D, commit 712aa57), quoted as they stand there:
+# the ``official`` presets must be what these lines say, so the expected values below are read from
+# the quotes, not typed a second time.
+RELEASED = {
+    "remove_ab_gaus.py": (
+        "threshold = 25#unseen th",  # a view sees a Gaussian above 25 pixels (split_mask: w.sum(-1) > threshold)
+        "soft_th = 0.8",  # gamma: ab = (value < soft_th) & seen
+        "sp_th = 0.4",  # theta_As: sp_mask = (ab_nums / (nums + 1e-6)) > sp_th
+        "scale = 0.8#",  # weights_split(sp_mask, opt.opacity_cull, scale=scale)
+        "gaussians.weights_prune(sp_mask, 0, -1)",  # strategy -1: every still-ambiguous Gaussian, right after the split
+        "if iteration == 1 or iteration== opt.iterations:",  # opt.prune: remove the unseen at the first and last
+        "weights = torch.zeros((gaussians.get_opacity.shape[0], len(viewpoints)), dtype=torch.int).cuda()",
+    ),
+    "scene/gaussian_model.py": (
+        "def weights_split(self, split_mask, scene_extent, scale=0.8, N=2):",
+        "self.get_scaling[selected_pts_mask].repeat(N, 1) / (scale*N))",
+    ),
+    "script/replica.sh": ("--iterations 9000", "--split_cycle_interval 1200", "--prune"),
+    "arguments/__init__.py": ("self.split_from_iter = 10#prune gaussina", "self.split_cycle_num=4 #Number of split cycles"),
+    "merge_patches.py": ("mask.repair(weights, miou_th=0.4)", 'parser.add_argument("--alpha_w", action="store_true")'),
+    "utils/con_mask_utils.py": (
+        "GAUS_NUM_TH = 100",  # filter_mask = count > GAUS_NUM_TH
+        "vf_th: float = 0.2,) -> float:",  # view_filter = (w_a_valid > vf_th) & (w_b_valid > vf_th)
+        "if val_views < 2:",  # return 0
+        "count = count*(valid_weight_mask(uni).sum(-1) > ct_th+1)",  # ct_th = iter_num = val_views//MAX_VIEWS+1
+    ),
+    "conf/con_masks_conf.py": ("MAX_VIEWS = 160",),
+}
+
+
+def _released(file: str, name: str) -> float:
+    """The number a quoted line of ``file`` gives ``name`` (``name = 0.4``, ``name=4``, ``--name 9000``,
+    ``name: float = 0.2``)."""
+    import re
+
+    for line in RELEASED[file]:
+        m = re.search(rf"(?:^|[\s(,]){re.escape(name)}(?:\s*:\s*\w+)?\s*[= ]\s*([0-9.]+)", line)
+        if m:
+            return float(m.group(1))
+    raise KeyError(f"{file}: no quoted line sets {name}")
+
+
 def test_presets_reach_the_code():
+    """The ``official`` presets against the released code's lines (:data:`RELEASED`); the ``paper``
+    presets against the paper (Sec. 3.3, 3.4: gamma 0.8, theta_As 0.5, scales halved, sim > 0.5)."""
     official = RefineParams(preset="official")
+    split_from = int(_released("arguments/__init__.py", "self.split_from_iter"))
+    interval = int(_released("script/replica.sh", "--split_cycle_interval"))
+    cycles = int(_released("arguments/__init__.py", "self.split_cycle_num"))
+    # the trace counts pixels (an int tensor of counts) unless --alpha_w, which replica.sh does not pass
+    assert "dtype=torch.int" in RELEASED["remove_ab_gaus.py"][-1] and "store_true" in RELEASED["merge_patches.py"][1]
+    assert not any("--alpha_w" in line for line in RELEASED["script/replica.sh"])
+    assert "/ (scale*N)" in RELEASED["scene/gaussian_model.py"][1]
     assert (official.statistic, official.min_visibility, official.ambiguity_threshold, official.scale_divisor,
-            official.iterations, official.detect_at) == ("pixels", 25.0, 0.4, 1.6, 9000, [10, 1210, 2410, 3610])
+            official.iterations, official.detect_at) == (
+        "pixels", _released("remove_ab_gaus.py", "threshold"), _released("remove_ab_gaus.py", "sp_th"),
+        _released("remove_ab_gaus.py", "scale") * _released("scene/gaussian_model.py", "N"),
+        _released("script/replica.sh", "--iterations"), [split_from + k * interval for k in range(cycles)])
+    assert official.gamma == _released("remove_ab_gaus.py", "soft_th")
+    assert official.detect_at == [10, 1210, 2410, 3610]
     assert official.detection_iterations() == [1, 121, 241, 361]
+    # after_split: weights_prune(..., -1) removes every Gaussian still ambiguous right after the split; no
+    # detection after the last iteration (the last split_mask only prints); the unseen pruned at 1 and the end
+    assert RELEASED["remove_ab_gaus.py"][4].endswith("0, -1)") and "--prune" in RELEASED["script/replica.sh"]
     assert (official.prune, official.final_prune, official.prune_unseen) == ("after_split", False, True)
     paper = RefineParams()
     assert (paper.statistic, paper.gamma, paper.ambiguity_threshold, paper.scale_divisor) == ("weights", 0.8, 0.5, 2.0)
@@ -305,7 +365,16 @@ def test_presets_reach_the_code():
     with pytest.raises(ValueError, match="final_prune"):
         RefineParams(prune="after_split")  # the paper preset's final_prune needs next_detection
     assert RefineParams(preset="official", scale_divisor=3.0).scale_divisor == 3.0  # a key overrides the preset
-    assert MergeParams(preset="official").threshold == 0.4 and MergeParams().threshold == 0.5
+    merge = MergeParams(preset="official")
+    assert merge.threshold == _released("merge_patches.py", "miou_th") and MergeParams().threshold == 0.5
+    # a Gaussian votes in more than ct_th + 1 views (at least ct_th + 2), ct_th = val_views // MAX_VIEWS + 1,
+    # which is 1 for any number of voting views below MAX_VIEWS
+    max_views = int(_released("conf/con_masks_conf.py", "MAX_VIEWS"))
+    ct_th = (max_views - 1) // max_views + 1
+    assert "> ct_th+1" in RELEASED["utils/con_mask_utils.py"][3]
+    assert (merge.min_gaussians, merge.min_view_share, merge.min_views, merge.min_gaussian_views) == (
+        _released("utils/con_mask_utils.py", "GAUS_NUM_TH"), _released("utils/con_mask_utils.py", "vf_th"),
+        _released("utils/con_mask_utils.py", "val_views <"), ct_th + 2)
     assert TraceParams(preset="official").statistic == "pixels" and TraceParams().statistic == "weights"
     from trace3d.params import from_mapping
 

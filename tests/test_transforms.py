@@ -360,7 +360,7 @@ def test_readme_capture_config_dry_runs(tmp_path):
     snakemake = shutil.which("snakemake", path=str(Path(sys.executable).parent)) or shutil.which("snakemake")
     if snakemake is None:
         pytest.skip("snakemake is not installed")
-    section = (repo / "README.md").read_text().split("## Your own capture", 1)[1]
+    section = (repo / "docs" / "capture.md").read_text().split("## Your own capture", 1)[1]
     config = yaml.safe_load(re.search(r"```yaml\n(.*?)```", section, flags=re.S).group(1))
     assert config["scenes"]["lego"]["kind"] == "transforms"
     config["data_root"] = str(tmp_path / "captures")

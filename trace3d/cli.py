@@ -97,15 +97,15 @@ def _parse_size(text: str) -> tuple[int, int]:
 
 def _cmd_bench(args: argparse.Namespace) -> None:
     if args.name == "render":
-        from .render.bench import run_bench
+        from .bench.render import run_bench
 
         result = run_bench(quick=args.quick)
     elif args.name == "synthetic":
-        from .datasets.synthetic.bench import run_bench
+        from .bench.synthetic import run_bench
 
         result = run_bench(quick=args.quick)
     elif args.name == "fit":
-        from .training.bench import run_rounds
+        from .bench.fit import run_rounds
 
         sizes = [_parse_size(text) for text in args.size] if args.size else None
         if args.rounds < 1:
@@ -113,10 +113,10 @@ def _cmd_bench(args: argparse.Namespace) -> None:
         result = run_rounds(args.rounds, quick=args.quick, sizes=sizes, iterations=args.iterations,
                             baseline=Path(args.baseline) if args.baseline else None)
     elif args.name == "fit-sweep":
-        from .training.bench import run_sweep
+        from .bench.fit import run_sweep
 
         if args.merge:
-            from .training.bench import merge_sweeps
+            from .bench.fit import merge_sweeps
 
             result = merge_sweeps([Path(f) for f in args.merge], Path(args.plot) if args.plot else None)
         else:
@@ -126,20 +126,26 @@ def _cmd_bench(args: argparse.Namespace) -> None:
             result = run_sweep([Path(r) for r in args.room_list], [int(b) for b in args.budgets],
                                [float(x) for x in args.scales], Path(args.plot) if args.plot else None)
     elif args.name == "trace":
-        from .tracing.bench import run_bench
+        from .bench.trace import run_bench
 
         result = run_bench(Path(args.room), quick=args.quick)
     elif args.name == "lift":
-        from .lifting.bench import run_bench
+        from .bench.lift import run_bench
         from .params import load_params_arg
 
         result = run_bench(Path(args.room), quick=args.quick, params=load_params_arg(args.params))
     elif args.name == "prompts":
-        from .masks.prompt_bench import run_bench
+        from .bench.prompts import run_bench
 
         result = run_bench(Path(args.room), views=4 if args.quick else 16)
+    elif args.name == "evaluate":
+        from .bench.evaluate import run_bench
+        from .params import load_params_arg
+
+        result = run_bench(Path(args.room), variant=args.variant, params=load_params_arg(args.params),
+                           repeats=args.rounds)
     elif args.name == "lift-forms":
-        from .lifting.bench import compare_forms
+        from .bench.lift import compare_forms
 
         result = compare_forms(Path(args.room), iterations=300 if args.quick else 1500)
     else:  # argparse restricts choices; kept for clarity
@@ -196,12 +202,14 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="benchmarks; print one JSON object")
     p.add_argument("name", choices=["render", "synthetic", "trace", "lift", "lift-forms", "fit", "fit-sweep",
-                                    "prompts"])
+                                    "prompts", "evaluate"])
     p.add_argument("--room", default="results/room0",
                    help="trace, lift: a fitted room's results folder (scene/, poses/, gaussians/, patches/ or "
                         "merge-paper/instances); prompts: a room's results folder or canonical scene with ground "
                         "truth (the prompt sources' answers scored against it, docs/masks.md)")
-    p.add_argument("--params", help="lift: the lift step's parameters (JSON/YAML or @file) whose wall time is measured")
+    p.add_argument("--params", help="lift: the lift step's parameters (JSON/YAML or @file) whose wall time is measured; "
+                                    "evaluate: the evaluate step's (default {\"protocol\": \"standard\"})")
+    p.add_argument("--variant", default="full", help="evaluate: the variant folder under --room whose lift is evaluated")
     p.add_argument("--quick", action="store_true", help="smaller sizes (smoke run)")
     p.add_argument("--size", action="append", metavar="WxH",
                    help="fit: frame size to measure (repeatable; default 160x120 and 504x378)")
@@ -212,7 +220,8 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--rounds", type=int, default=1,
                    help="fit: run the benchmark this many times (alternating with --baseline's) and report the "
                         "median round per size, every round's time and, with --baseline, each round pair's "
-                        "speedup and their median (default 1)")
+                        "speedup and their median (default 1); evaluate: evaluations in a row (the first may "
+                        "compile kernels)")
     p.add_argument("--rooms", dest="room_list", nargs="+", help="fit-sweep: rooms' results folders (scene/, poses/)")
     p.add_argument("--budgets", nargs="+", default=["20000", "40000", "80000"],
                    help="fit-sweep: Gaussian budgets (max_gaussians)")

@@ -126,3 +126,20 @@ def load_params_arg(text: str | None) -> dict:
 def to_dict(params: Any) -> dict:
     """The dataclass as a plain dict (saved beside outputs as the resolved config)."""
     return json.loads(json.dumps(dataclasses.asdict(params)))
+
+
+def check_ranges(params: Any, unit: tuple[str, ...] = (), nonnegative: tuple[str, ...] = (),
+                 at_least: Mapping[str, float] | None = None) -> None:
+    """Refuse out-of-range fields of a parameter dataclass (``ValueError`` naming the field): ``unit``
+    fields must lie in [0, 1], ``nonnegative`` ones be >= 0, and ``at_least`` maps a field to its
+    smallest allowed value."""
+    for name in unit:
+        value = getattr(params, name)
+        if not 0.0 <= value <= 1.0:
+            raise ValueError(f"{name} must be in [0, 1], got {value}")
+    for name in nonnegative:
+        if getattr(params, name) < 0:
+            raise ValueError(f"{name} must be >= 0, got {getattr(params, name)}")
+    for name, low in (at_least or {}).items():
+        if getattr(params, name) < low:
+            raise ValueError(f"{name} must be >= {low:g}, got {getattr(params, name)}")

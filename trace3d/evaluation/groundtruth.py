@@ -54,6 +54,20 @@ def object_mask(instances: np.ndarray, member: np.ndarray) -> np.ndarray:
     return out
 
 
+def _leaf_ids(instances: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """(ids [H, W] int64, ids < size) of a leaf-id map: what :func:`object_mask` computes per object,
+    computed once per view."""
+    ids = instances.astype(np.int64)
+    return ids, ids < size
+
+
+def _mask_from_ids(ids: np.ndarray, inside: np.ndarray, member: np.ndarray) -> np.ndarray:
+    """:func:`object_mask` from :func:`_leaf_ids` (the same mask)."""
+    out = np.zeros(ids.shape, bool)
+    out[inside] = member[ids[inside]]
+    return out
+
+
 def occluded_fraction(mask: np.ndarray, depth: np.ndarray, ratio: float) -> float:
     """Share of ``mask``'s boundary pixels that have a closer outside 4-neighbour.
 
@@ -127,16 +141,31 @@ class GroundTruth:
         self.has_depth = scene.has_depth
         self.info: dict[int, list[ViewInfo]] = {oid: [] for oid in self.object_ids}
         self._instances: dict[str, np.ndarray] = {}
+        self._ids: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        size = len(next(iter(self.members.values()))) if self.members else 0
         for cam in self.cameras:
             instances = self._instances[cam.name] = scene.instances(cam.name)
+            ids, inside = self._ids[cam.name] = _leaf_ids(instances, size)
+            # pixels per leaf id: an object's pixel count without its mask (most objects miss most views)
+            leaves = ids[inside]
+            counts = np.bincount(leaves, minlength=size) if not leaves.size or leaves.min() >= 0 else None
             depth = scene.depth(cam.name) if self.has_depth else None
             for oid in self.object_ids:
-                mask = object_mask(instances, self.members[oid])
-                pixels = int(mask.sum())
+                mask = None
+                if counts is not None:
+                    pixels = int(counts[self.members[oid]].sum())
+                else:  # negative ids (a signed map): count the mask itself, as object_mask indexes them
+                    mask = _mask_from_ids(ids, inside, self.members[oid])
+                    pixels = int(mask.sum())
                 occ = None
-                if pixels and depth is not None:
-                    occ = occluded_fraction(mask, depth, params.occlusion_depth_ratio)
-                self.info[oid].append(ViewInfo(cam.name, cam.split, pixels, occ, touches_border(mask) if pixels else False))
+                border = False
+                if pixels:
+                    if mask is None:
+                        mask = _mask_from_ids(ids, inside, self.members[oid])
+                    border = touches_border(mask)
+                    if depth is not None:
+                        occ = occluded_fraction(mask, depth, params.occlusion_depth_ratio)
+                self.info[oid].append(ViewInfo(cam.name, cam.split, pixels, occ, border))
 
     def instances(self, frame: str) -> np.ndarray:
         """[H, W] leaf ids of ``frame`` (``instances/<frame>.png``)."""
@@ -144,7 +173,8 @@ class GroundTruth:
 
     def mask(self, object_id: int, frame: str) -> np.ndarray:
         """[H, W] bool ground-truth mask of ``object_id`` in ``frame``."""
-        return object_mask(self._instances[frame], self.members[object_id])
+        ids, inside = self._ids[frame]
+        return _mask_from_ids(ids, inside, self.members[object_id])
 
     def name(self, object_id: int) -> str:
         return self.scene.objects.by_id[object_id].name

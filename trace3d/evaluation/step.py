@@ -20,6 +20,7 @@ pairs as well.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import json
 import logging
@@ -59,6 +60,27 @@ def register_lifting_methods() -> None:
             log.warning("lifting method module %s is unavailable: %s", info.name, exc)
 
 
+class Phases:
+    """Wall and CPU seconds per named phase of one evaluation (``trace3d bench evaluate``); never
+    written into metrics.json (its bytes do not depend on timing beyond the ``seconds`` fields)."""
+
+    def __init__(self) -> None:
+        self.wall: dict[str, float] = {}
+        self.cpu: dict[str, float] = {}
+
+    @contextlib.contextmanager
+    def __call__(self, name: str):
+        wall, cpu = time.perf_counter(), time.process_time()
+        try:
+            yield
+        finally:
+            self.wall[name] = self.wall.get(name, 0.0) + time.perf_counter() - wall
+            self.cpu[name] = self.cpu.get(name, 0.0) + time.process_time() - cpu
+
+    def to_json(self) -> dict:
+        return {name: {"wall_s": round(self.wall[name], 3), "cpu_s": round(self.cpu[name], 3)} for name in self.wall}
+
+
 def _means(views: list[dict], keys: tuple[str, ...]) -> dict:
     return {k: mean_or_none([v[k] for v in views]) for k in keys}
 
@@ -76,9 +98,11 @@ def _picture_choice(objects: list[dict], count: int) -> list[int]:
 
 
 def run_evaluate(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Path, lift_dir: Path, out_dir: Path,
-                 params: dict, label: dict | None = None, objects_dir: Path | None = None) -> dict:
+                 params: dict, label: dict | None = None, objects_dir: Path | None = None,
+                 phases: Phases | None = None) -> dict:
     """Evaluate the lifted scene of ``lift_dir`` (over ``gaussians_dir``) on the scene's ground truth;
-    the object files go to ``objects_dir`` (default ``out_dir/objects``)."""
+    the object files go to ``objects_dir`` (default ``out_dir/objects``); ``phases`` (optional)
+    collects the seconds of each phase."""
     from ..lifting import load_lifted
     from ..tracing.git import load_fitted
 
@@ -86,13 +110,16 @@ def run_evaluate(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Path, l
     if label is not None and not isinstance(label, dict):
         raise Trace3DError(f"evaluate: --label must be a JSON mapping, got {label!r}.")
     start = time.perf_counter()
-    scene = Scene.read(scene_dir)
-    model, cameras = load_fitted(scene, Path(poses_dir) if poses_dir else None, Path(gaussians_dir))
-    train = [c for c in cameras if c.split == "train"]
-    register_lifting_methods()
-    lifted = load_lifted(lift_dir, model, scene, train)
-    lift_info = json.loads((Path(lift_dir) / "lift.json").read_text())
-    gt = GroundTruth(scene, cameras, p)
+    ph = phases if phases is not None else Phases()
+    with ph("load"):
+        scene = Scene.read(scene_dir)
+        model, cameras = load_fitted(scene, Path(poses_dir) if poses_dir else None, Path(gaussians_dir))
+        train = [c for c in cameras if c.split == "train"]
+        register_lifting_methods()
+        lifted = load_lifted(lift_dir, model, scene, train)
+        lift_info = json.loads((Path(lift_dir) / "lift.json").read_text())
+    with ph("ground_truth"):
+        gt = GroundTruth(scene, cameras, p)
     by_name = {c.name: c for c in cameras}
     out_dir = Path(out_dir)
     objects_dir = Path(objects_dir) if objects_dir is not None else out_dir / "objects"
@@ -116,7 +143,7 @@ def run_evaluate(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Path, l
                             "reason": f"no training view shows it with at least {p.min_pixels} pixels"})
             continue
         keep, ext_frames, nvs_frames, extraction, nvs, nvs_preds = _score_object(
-            lifted, query, oid, gt, model, by_name, image, p, lift_dir)
+            lifted, query, oid, gt, model, by_name, image, p, lift_dir, ph)
         entry = {
             "id": oid, "name": gt.name(oid), "reference": query.reference, "query_pixels": int(query.mask.sum()),
             "gaussians": int(keep.sum()),
@@ -130,47 +157,52 @@ def run_evaluate(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Path, l
                             "reason": f"no scored view ({p.views} views, >= {p.min_pixels} px, not occluded)"})
         obj_model = model.subset(torch.from_numpy(keep))
         if p.object_files:
-            obj_model.write_ply(objects_dir / f"{oid}.ply")
-            write_turntable(objects_dir / f"{oid}.png", obj_model, up, p.turntable_views, p.turntable_size,
-                            p.near)
+            with ph("object_files"):
+                obj_model.write_ply(objects_dir / f"{oid}.ply")
+                write_turntable(objects_dir / f"{oid}.png", obj_model, up, p.turntable_views, p.turntable_size,
+                                p.near)
         # the picture view: the scored extraction view (else NVS view) with the most ground-truth pixels
         frames = ext_frames or nvs_frames
         if frames:
-            best = max(frames, key=lambda f: (int(gt.mask(oid, f).sum()), f))
-            rgb, _ = render_alone(obj_model, by_name[best], p.near)
-            pred = nvs_preds[nvs_frames.index(best)] if best in nvs_frames else \
-                lifted.object_masks(query, [by_name[best]])[0]
-            picture_data[oid] = {"frame": best, "render": rgb, "pred": np.asarray(pred, bool)}
+            with ph("picture_renders"):
+                best = max(frames, key=lambda f: (int(gt.mask(oid, f).sum()), f))
+                rgb, _ = render_alone(obj_model, by_name[best], p.near)
+                pred = nvs_preds[nvs_frames.index(best)] if best in nvs_frames else \
+                    lifted.object_masks(query, [by_name[best]])[0]
+                picture_data[oid] = {"frame": best, "render": rgb, "pred": np.asarray(pred, bool)}
 
     summary = _summary(objects, p)
     extra = {}
     if p.single_point:
-        extra["single_point"] = _single_point(lifted, lift_info, gt, model, by_name, image, p, lift_dir)
+        with ph("single_point"):
+            extra["single_point"] = _single_point(lifted, lift_info, gt, model, by_name, image, p, lift_dir)
     if p.panoptic:
-        extra["panoptic"] = _panoptic(lifted, lift_info, gt, cameras, by_name, p)
-    rows = []
-    for i in _picture_choice(objects, p.picture_objects):
-        o = objects[i]
-        data = picture_data.get(o["id"])
-        if data is None:
-            continue
-        frame = data["frame"]
-        truth = gt.mask(o["id"], frame)
-        ext = next((v for v in o["extraction"]["views"] if v["frame"] == frame), None)
-        nv = next((v for v in o["nvs"]["views"] if v["frame"] == frame), None)
-        rows.append({
-            "reference": image(o["reference"]), "query": gt.mask(o["id"], o["reference"]),
-            "render": data["render"], "truth_image": image(frame) * truth[..., None], "image": image(frame),
-            "nvs": data["pred"], "truth": truth,
-            "label": f"{o['id']} {o['name']}  (ref. {o['reference']})",
-            "extraction_text": f"{frame}: IoU {ext['iou']:.2f}, PSNR {ext['psnr']:.1f} dB" if ext else frame,
-            "nvs_text": f"{frame}: IoU {nv['iou']:.2f}" if nv else "",
-        })
-    method = lift_info.get("method", "?")
-    name = (label or {}).get("variant", method)
-    title = f"{scene_name(scene_dir, scene.meta)} / {name}: object mIoU " \
-            f"{_fmt(summary['extraction']['mIoU'])}, NVS mIoU {_fmt(summary['nvs']['mIoU'])}"
-    write_pictures(out_dir / "pictures.png", rows, title)
+        with ph("panoptic"):
+            extra["panoptic"] = _panoptic(lifted, lift_info, gt, cameras, by_name, p)
+    with ph("pictures"):
+        rows = []
+        for i in _picture_choice(objects, p.picture_objects):
+            o = objects[i]
+            data = picture_data.get(o["id"])
+            if data is None:
+                continue
+            frame = data["frame"]
+            truth = gt.mask(o["id"], frame)
+            ext = next((v for v in o["extraction"]["views"] if v["frame"] == frame), None)
+            nv = next((v for v in o["nvs"]["views"] if v["frame"] == frame), None)
+            rows.append({
+                "reference": image(o["reference"]), "query": gt.mask(o["id"], o["reference"]),
+                "render": data["render"], "truth_image": image(frame) * truth[..., None], "image": image(frame),
+                "nvs": data["pred"], "truth": truth,
+                "label": f"{o['id']} {o['name']}  (ref. {o['reference']})",
+                "extraction_text": f"{frame}: IoU {ext['iou']:.2f}, PSNR {ext['psnr']:.1f} dB" if ext else frame,
+                "nvs_text": f"{frame}: IoU {nv['iou']:.2f}" if nv else "",
+            })
+        method = lift_info.get("method", "?")
+        name = (label or {}).get("variant", method)
+        title = f"{scene_name(scene_dir, scene.meta)} / {name}: object mIoU " \
+                f"{_fmt(summary['extraction']['mIoU'])}, NVS mIoU {_fmt(summary['nvs']['mIoU'])}"
+        write_pictures(out_dir / "pictures.png", rows, title)
     seconds = time.perf_counter() - start
     metrics = {
         "scene": scene_name(scene_dir, scene.meta),
@@ -186,7 +218,8 @@ def run_evaluate(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Path, l
         **extra,
         "seconds": seconds,
     }
-    write_json(out_dir / "metrics.json", metrics)
+    with ph("write"):
+        write_json(out_dir / "metrics.json", metrics)
     log.info("evaluate: %d objects (%d skipped), object mIoU %s, PSNR %s, NVS mIoU %s, %.1f s", len(objects),
              len(skipped), _fmt(summary["extraction"]["mIoU"]), _fmt(summary["extraction"]["PSNR"], 1),
              _fmt(summary["nvs"]["mIoU"]), seconds)
@@ -194,21 +227,25 @@ def run_evaluate(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Path, l
 
 
 def _score_object(lifted, query, oid: int, gt: GroundTruth, model, by_name: dict, image, p: EvaluateParams,
-                  lift_dir: Path):
+                  lift_dir: Path, ph: Phases | None = None):
     """Both tasks for one object: (keep [N] bool, extraction frames, NVS frames, extraction scores,
     NVS scores, NVS masks)."""
-    keep = np.asarray(lifted.object_gaussians(query))
+    ph = ph if ph is not None else Phases()
+    with ph("object_gaussians"):
+        keep = np.asarray(lifted.object_gaussians(query))
     if keep.shape != (len(model),) or keep.dtype != bool:
         raise Trace3DError(f"evaluate: the lifted scene of {lift_dir} returned object Gaussians of shape "
                            f"{keep.shape} ({keep.dtype}); expected [{len(model)}] bool.")
     ext_frames, nvs_frames = gt.extraction_views(oid), gt.nvs_views(oid)
-    ext_cams = [by_name[f] for f in ext_frames]
-    ext_truth = [gt.mask(oid, f) for f in ext_frames]
-    extraction = evaluate_extraction(model, keep, ext_cams, ext_truth, [image(f) for f in ext_frames],
-                                     p.alpha_eps, p.psnr_margin, p.near)
-    nvs_cams = [by_name[f] for f in nvs_frames]
-    nvs_truth = [gt.mask(oid, f) for f in nvs_frames]
-    nvs, nvs_preds = evaluate_nvs(lifted, query, nvs_cams, nvs_truth, p.accuracy)
+    with ph("extraction"):
+        ext_cams = [by_name[f] for f in ext_frames]
+        ext_truth = [gt.mask(oid, f) for f in ext_frames]
+        extraction = evaluate_extraction(model, keep, ext_cams, ext_truth, [image(f) for f in ext_frames],
+                                         p.alpha_eps, p.psnr_margin, p.near)
+    with ph("nvs"):
+        nvs_cams = [by_name[f] for f in nvs_frames]
+        nvs_truth = [gt.mask(oid, f) for f in nvs_frames]
+        nvs, nvs_preds = evaluate_nvs(lifted, query, nvs_cams, nvs_truth, p.accuracy)
     return keep, ext_frames, nvs_frames, extraction, nvs, nvs_preds
 
 

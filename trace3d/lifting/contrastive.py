@@ -24,7 +24,7 @@ Speed: the renders of the sampled pixels are sparse products with per-view blend
 once (:mod:`trace3d.render.pixel_weights`), for a pool of ``pool_pixels`` random labelled pixels per
 view, of which each iteration gathers only its sampled rows; ``path: raster`` renders with the
 rasterizer instead (the twin, and the benchmark's baseline). The loss and its gradient come from one
-fused numba kernel (:mod:`trace3d.lifting.loss_kernel`); ``fused: false`` uses the torch autograd form
+fused numba kernel (:mod:`trace3d.lifting.kernels.contrastive`); ``fused: false`` uses the torch autograd form
 (:func:`contrastive_loss`, its twin).
 """
 
@@ -48,8 +48,8 @@ from ..compiling import track as track_compile_time
 from ..errors import Trace3DError
 from ..gaussians import GaussianModel
 from ..scene import Camera
-from ..training.adam_kernel import CpuAdam
-from .loss_kernel import fused_contrastive_loss, kernel_constants, loss_and_grad
+from ..training.kernels.adam import CpuAdam
+from .kernels.contrastive import fused_contrastive_loss, kernel_constants, loss_and_grad
 
 log = logging.getLogger(__name__)
 

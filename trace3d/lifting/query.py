@@ -139,20 +139,86 @@ def _squared_distance(fmap, y, x, feats, k):
             e = fmap[y, x, d] - feats[k, d]
             res += e * e
         return res
-    r = np.empty(8, np.float32)
-    for j in range(8):
-        e = fmap[y, x, j] - feats[k, j]
-        r[j] = e * e
+    # the eight running sums in scalars (an np.empty(8) here was a heap allocation per pixel and query)
+    e0 = fmap[y, x, 0] - feats[k, 0]
+    e1 = fmap[y, x, 1] - feats[k, 1]
+    e2 = fmap[y, x, 2] - feats[k, 2]
+    e3 = fmap[y, x, 3] - feats[k, 3]
+    e4 = fmap[y, x, 4] - feats[k, 4]
+    e5 = fmap[y, x, 5] - feats[k, 5]
+    e6 = fmap[y, x, 6] - feats[k, 6]
+    e7 = fmap[y, x, 7] - feats[k, 7]
+    r0, r1, r2, r3 = e0 * e0, e1 * e1, e2 * e2, e3 * e3
+    r4, r5, r6, r7 = e4 * e4, e5 * e5, e6 * e6, e7 * e7
     full = n - n % 8
     for i in range(8, full, 8):
-        for j in range(8):
-            e = fmap[y, x, i + j] - feats[k, i + j]
-            r[j] += e * e
-    res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+        e0 = fmap[y, x, i] - feats[k, i]
+        e1 = fmap[y, x, i + 1] - feats[k, i + 1]
+        e2 = fmap[y, x, i + 2] - feats[k, i + 2]
+        e3 = fmap[y, x, i + 3] - feats[k, i + 3]
+        e4 = fmap[y, x, i + 4] - feats[k, i + 4]
+        e5 = fmap[y, x, i + 5] - feats[k, i + 5]
+        e6 = fmap[y, x, i + 6] - feats[k, i + 6]
+        e7 = fmap[y, x, i + 7] - feats[k, i + 7]
+        r0 += e0 * e0
+        r1 += e1 * e1
+        r2 += e2 * e2
+        r3 += e3 * e3
+        r4 += e4 * e4
+        r5 += e5 * e5
+        r6 += e6 * e6
+        r7 += e7 * e7
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
     for i in range(full, n):
         e = fmap[y, x, i] - feats[k, i]
         res += e * e
     return res
+
+
+@njit(cache=True, inline="always")
+def _within(fmap, y, x, feats, k, t):
+    """sqrt(:func:`_squared_distance`) <= t, the same float32 operations, but a pixel is rejected after
+    the first eight dimensions when their eight running sums alone already exceed t: every later
+    operation adds a non-negative square and rounding is monotone, so the full sum is at least that
+    partial sum (the answer is exactly the full test's)."""
+    n = feats.shape[1]
+    if n < 8:
+        return np.sqrt(_squared_distance(fmap, y, x, feats, k)) <= t
+    e0 = fmap[y, x, 0] - feats[k, 0]
+    e1 = fmap[y, x, 1] - feats[k, 1]
+    e2 = fmap[y, x, 2] - feats[k, 2]
+    e3 = fmap[y, x, 3] - feats[k, 3]
+    e4 = fmap[y, x, 4] - feats[k, 4]
+    e5 = fmap[y, x, 5] - feats[k, 5]
+    e6 = fmap[y, x, 6] - feats[k, 6]
+    e7 = fmap[y, x, 7] - feats[k, 7]
+    r0, r1, r2, r3 = e0 * e0, e1 * e1, e2 * e2, e3 * e3
+    r4, r5, r6, r7 = e4 * e4, e5 * e5, e6 * e6, e7 * e7
+    if np.sqrt(((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))) > t:
+        return False
+    full = n - n % 8
+    for i in range(8, full, 8):
+        e0 = fmap[y, x, i] - feats[k, i]
+        e1 = fmap[y, x, i + 1] - feats[k, i + 1]
+        e2 = fmap[y, x, i + 2] - feats[k, i + 2]
+        e3 = fmap[y, x, i + 3] - feats[k, i + 3]
+        e4 = fmap[y, x, i + 4] - feats[k, i + 4]
+        e5 = fmap[y, x, i + 5] - feats[k, i + 5]
+        e6 = fmap[y, x, i + 6] - feats[k, i + 6]
+        e7 = fmap[y, x, i + 7] - feats[k, i + 7]
+        r0 += e0 * e0
+        r1 += e1 * e1
+        r2 += e2 * e2
+        r3 += e3 * e3
+        r4 += e4 * e4
+        r5 += e5 * e5
+        r6 += e6 * e6
+        r7 += e7 * e7
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    for i in range(full, n):
+        e = fmap[y, x, i] - feats[k, i]
+        res += e * e
+    return np.sqrt(res) <= t
 
 
 @njit(parallel=True, cache=True)
@@ -174,10 +240,29 @@ def _query_mask(fmap, feats, thresholds, out):
         for x in range(w):
             hit = False
             for k in range(feats.shape[0]):
-                if np.sqrt(_squared_distance(fmap, y, x, feats, k)) <= thresholds[k]:
+                if _within(fmap, y, x, feats, k, thresholds[k]):
                     hit = True
                     break
             out[y, x] = hit
+
+
+@njit(parallel=True, cache=True)
+def _query_mask_stack(stack, feats, thresholds, out):
+    """:func:`_query_mask` of every view of ``stack`` [V, H, W, D] into ``out`` [V, H, W] in one call
+    (one parallel launch per object instead of one per view: on a loaded machine each launch waits for
+    both threads to be scheduled)."""
+    v, h, w, _ = stack.shape
+    for vy in prange(v * h):
+        i = vy // h
+        y = vy - i * h
+        fmap = stack[i]
+        for x in range(w):
+            hit = False
+            for k in range(feats.shape[0]):
+                if _within(fmap, y, x, feats, k, thresholds[k]):
+                    hit = True
+                    break
+            out[i, y, x] = hit
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -296,16 +381,62 @@ def trace_object_weights(weights: Sequence, masks: Sequence[np.ndarray], share: 
     Returns:
         [N] bool, as :func:`trace_object`.
     """
-    n = weights[0].num_gaussians if weights else 0
-    fg = np.zeros(n, np.float64)
     if total is None:
         total = summed_weights(weights)
+    fg = object_weights(weights, masks)
+    frac = fg / np.maximum(total, 1e-12)
+    return (total > 0) & (frac > share)
+
+
+def object_weights(weights: Sequence, masks: Sequence[np.ndarray]) -> np.ndarray:
+    """[N] float64: every Gaussian's blending weight summed over the pixels of ``masks`` (one [H, W]
+    bool per view of ``weights``).
+
+    Visits only the CSR rows of the mask's pixels (a mask covers a few percent of a view), one numba
+    pass per view; the values are those of :func:`object_weights_numpy` to the bit: per view the
+    float64 sums in entry order (``np.bincount``'s), then added to the running total view by view."""
+    n = weights[0].num_gaussians if weights else 0
+    fg = np.zeros(n, np.float64)
+    view = np.zeros(n, np.float64)
+    touched = np.zeros(n, np.bool_)
+    order = np.empty(n, np.int64)
+    for w, m in zip(weights, masks):
+        flat = np.ascontiguousarray(np.asarray(m, bool).ravel())
+        _add_masked_rows(flat, w.pixels, w.indptr, w.indices, w.weights, fg, view, touched, order)
+    return fg
+
+
+def object_weights_numpy(weights: Sequence, masks: Sequence[np.ndarray]) -> np.ndarray:
+    """:func:`object_weights` in numpy over every entry (the twin)."""
+    n = weights[0].num_gaussians if weights else 0
+    fg = np.zeros(n, np.float64)
     for w, m in zip(weights, masks):
         inside = np.asarray(m, bool).ravel()[w.pixels]
         entries = np.repeat(inside, np.diff(w.indptr))
         fg += np.bincount(w.indices[entries], weights=w.weights[entries], minlength=n)
-    frac = fg / np.maximum(total, 1e-12)
-    return (total > 0) & (frac > share)
+    return fg
+
+
+@njit(cache=True)
+def _add_masked_rows(inside, pixels, indptr, indices, weights, fg, view, touched, order):
+    """fg += the per-Gaussian sums over the rows whose pixel is ``inside`` (``view``, ``touched`` and
+    ``order`` are scratch: zero / False on entry and on return)."""
+    count = 0
+    for r in range(pixels.shape[0]):
+        if not inside[pixels[r]]:
+            continue
+        for e in range(indptr[r], indptr[r + 1]):
+            g = indices[e]
+            if not touched[g]:
+                touched[g] = True
+                order[count] = g
+                count += 1
+            view[g] += np.float64(weights[e])
+    for k in range(count):
+        g = order[k]
+        fg[g] += view[g]
+        view[g] = 0.0
+        touched[g] = False
 
 
 def summed_weights(weights: Sequence) -> np.ndarray:
@@ -336,6 +467,10 @@ class FeatureLifted:
         self._queries: dict[str, QueryPoints] = {}
         self._maps: dict[str, np.ndarray] = {}
         self._gaussians: dict[str, np.ndarray] = {}
+        # object Gaussians by the query points' content (shared with :meth:`with_query` siblings: one
+        # query point is often all that the full search keeps, and then both protocols trace alike)
+        self._by_points: dict[bytes, np.ndarray] = {}
+        self._stack: list = [None]  # [V, H, W, D] feature maps of the training views (shared by siblings)
         self._weights: list | None = None
         self._total: np.ndarray | None = None
 
@@ -351,6 +486,8 @@ class FeatureLifted:
         if self._weights is None:
             self.train_weights()
         other._weights, other._total = self._weights, self._total
+        other._by_points = self._by_points
+        other._stack = self._stack
         return other
 
     def feature_map(self, camera: Camera) -> np.ndarray:
@@ -360,6 +497,31 @@ class FeatureLifted:
         if camera.name not in self._maps:
             self._maps[camera.name] = render_feature_map(self.model, camera, self.features, self.params.near)
         return self._maps[camera.name]
+
+    def train_masks(self, q: QueryPoints) -> list[np.ndarray]:
+        """[H, W] bool masks of ``q`` at every training view: :meth:`QueryPoints.mask` of each view's
+        feature map (the twin), in one kernel call over the training views' maps stacked once (their
+        cached maps become views into the stack); per view when the sizes differ or the kernel does
+        not apply."""
+        cams = self.train_cameras
+        if not cams or q.features.shape[0] == 0 or q.thresholds.dtype != np.float32 \
+                or len({(c.height, c.width) for c in cams}) != 1:
+            return [q.mask(self.feature_map(c)) for c in cams]
+        if self._stack[0] is None:
+            first = self.feature_map(cams[0])
+            if not _kernel_applies(first, q.features):
+                return [q.mask(self.feature_map(c)) for c in cams]
+            stack = np.empty((len(cams),) + first.shape, np.float32)
+            for i, c in enumerate(cams):
+                stack[i] = self.feature_map(c)
+                self._maps[c.name] = stack[i]
+            self._stack[0] = stack
+        stack = self._stack[0]
+        if not _kernel_applies(stack[0], q.features):
+            return [q.mask(self.feature_map(c)) for c in cams]
+        out = np.empty(stack.shape[:3], np.bool_)
+        _query_mask_stack(stack, q.features, q.thresholds, out)
+        return list(out)
 
     def train_weights(self) -> list:
         """The full-view pixel weights of every training view, computed once (about 4 MB per 160x120 view)."""
@@ -398,9 +560,15 @@ class FeatureLifted:
     def object_gaussians(self, query: ObjectQuery) -> np.ndarray:
         key = query_key(query)
         if key not in self._gaussians:
-            masks = self.object_masks(query, self.train_cameras)
-            self._gaussians[key] = trace_object_weights(self.train_weights(), masks, self.params.gaussian_share,
-                                                        self._total)
+            q = self.query_points(query)
+            # the traced Gaussians are a function of the query features and thresholds (and the share)
+            content = b"".join((np.float64(self.params.gaussian_share).tobytes(), str(q.features.shape).encode(),
+                                q.features.tobytes(), q.thresholds.tobytes()))
+            if content not in self._by_points:
+                masks = self.train_masks(q)
+                self._by_points[content] = trace_object_weights(self.train_weights(), masks,
+                                                                self.params.gaussian_share, self._total)
+            self._gaussians[key] = self._by_points[content]
         return self._gaussians[key]
 
 

@@ -44,9 +44,11 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from ..params import check_ranges
 from ..scene import ObjectTable, Scene
 from .sam import nest_covered_masks
 from .simulate import (
+    BORDER_AND_SIZE_FIELDS,
     DEFAULT_FLAT_CATEGORIES,
     _analyse_view,
     _LevelTables,
@@ -133,21 +135,11 @@ class NestedParams:
     def __post_init__(self) -> None:
         if self.model != "nested":
             raise ValueError(f"model must be 'nested' for these parameters, got {self.model!r}")
-        for name in ("inconsistency", "part_rate", "subpart_rate", "group_rate", "whole_drop_rate", "miss_rate",
-                     "stuff_split_rate", "stuff_whole_drop_rate", "drop_cover", "edge_contrast", "small_fraction",
-                     "flat_fraction"):
-            value = getattr(self, name)
-            if not 0.0 <= value <= 1.0:
-                raise ValueError(f"{name} must be in [0, 1], got {value}")
-        for name in ("jitter_pixels", "warp_pixels", "thin_pixels", "touch_pixels", "min_mask_pixels"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        if self.max_subparts < 2:
-            raise ValueError(f"max_subparts must be >= 2, got {self.max_subparts}")
-        if self.stuff_max_pieces < 2:
-            raise ValueError(f"stuff_max_pieces must be >= 2, got {self.stuff_max_pieces}")
-        if self.warp_cells < 1 or self.cut_cells < 1:
-            raise ValueError(f"warp_cells and cut_cells must be >= 1, got {self.warp_cells} and {self.cut_cells}")
+        check_ranges(self, unit=("inconsistency", "part_rate", "subpart_rate", "group_rate", "whole_drop_rate",
+                                 "miss_rate", "stuff_split_rate", "stuff_whole_drop_rate", "drop_cover",
+                                 "edge_contrast", "small_fraction", "flat_fraction"),
+                     nonnegative=BORDER_AND_SIZE_FIELDS,
+                     at_least={"max_subparts": 2, "stuff_max_pieces": 2, "warp_cells": 1, "cut_cells": 1})
         if not 0.0 < self.nms_iou <= 1.0:
             raise ValueError(f"nms_iou must be in (0, 1], got {self.nms_iou}")
         if not 0.0 < self.nest_coverage <= 1.0:

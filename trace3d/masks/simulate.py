@@ -37,12 +37,14 @@ import numpy as np
 from tqdm import tqdm
 
 from ..errors import Trace3DError
-from ..params import from_mapping
+from ..params import check_ranges, from_mapping
 from ..scene import ObjectTable, Scene
 
 log = logging.getLogger(__name__)
 
 DEFAULT_FLAT_CATEGORIES = ("wall", "floor", "ceiling", "rug", "carpet")
+# pixel sizes both simulated mask models share (never negative)
+BORDER_AND_SIZE_FIELDS = ("jitter_pixels", "warp_pixels", "thin_pixels", "touch_pixels", "min_mask_pixels")
 
 
 @dataclasses.dataclass
@@ -90,16 +92,9 @@ class SimulateParams:
     def __post_init__(self) -> None:
         if self.model != "one_level":
             raise ValueError(f"model must be 'one_level' for these parameters, got {self.model!r}")
-        for name in ("inconsistency", "part_rate", "group_rate", "multi_rate", "miss_rate", "split_rate",
-                     "small_fraction", "flat_fraction"):
-            value = getattr(self, name)
-            if not 0.0 <= value <= 1.0:
-                raise ValueError(f"{name} must be in [0, 1], got {value}")
-        for name in ("jitter_pixels", "warp_pixels", "thin_pixels", "touch_pixels", "min_mask_pixels"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        if self.warp_cells < 1:
-            raise ValueError(f"warp_cells must be >= 1, got {self.warp_cells}")
+        check_ranges(self, unit=("inconsistency", "part_rate", "group_rate", "multi_rate", "miss_rate", "split_rate",
+                                 "small_fraction", "flat_fraction"),
+                     nonnegative=BORDER_AND_SIZE_FIELDS, at_least={"warp_cells": 1})
         self.flat_categories = [c.lower() for c in self.flat_categories]
 
     def rate(self, name: str) -> float:

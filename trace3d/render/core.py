@@ -131,7 +131,7 @@ def render(splats: Splats, camera: Camera, features: Tensor | Callable[[Optional
     if name == "reference":
         out = render_reference(proj, features, camera.width, camera.height, background, near)
     else:
-        from .kernels import rasterize
+        from .kernels.rasterize import rasterize
 
         out = rasterize(proj if rows is None else proj.select(rows), features, camera.width, camera.height,
                         background, near)
@@ -202,7 +202,7 @@ def trace(splats: Splats, camera: Camera, labels: Tensor, num_labels: int, near:
             proj = project(splats, camera, near)
         dense = _trace_by_backward(proj, camera, labels, num_labels, near, "reference")
         return dense.to_sparse().coalesce()
-    from .kernels import coalesce_triplets
+    from .kernels.coalesce import coalesce_triplets
 
     seen, rows, cols, w = traced_triplets(splats, camera, labels, near, count_pixels)
     rows, cols, w, _ = coalesce_triplets(rows, cols, w, seen.shape[0])
@@ -220,7 +220,7 @@ def traced_triplets(splats: Splats, camera: Camera, labels: Tensor, near: float 
     Only the seen splats are projected and traced: the projection is row by row, so their values are
     those of the whole projection, and a view of a room sees about a fifth of it.
     """
-    from .kernels import trace_triplets
+    from .kernels.trace import trace_triplets
 
     with torch.no_grad():
         seen = torch.nonzero(visible_mask(splats, camera, near)).squeeze(1)
@@ -253,7 +253,7 @@ def trace_reduced(splats: Splats, camera: Camera, labels: Tensor, num_labels: in
             dst[:] = src.cpu().numpy()
         return out
     labels = _check_labels(labels, camera, num_labels)
-    from .kernels import coalesce_triplets, reduce_into_rows
+    from .kernels.coalesce import coalesce_triplets, reduce_into_rows
 
     seen, rows, cols, w = traced_triplets(splats, camera, labels, near, count_pixels)
     _, cols, w, indptr = coalesce_triplets(rows, cols, w, seen.shape[0])
@@ -289,7 +289,7 @@ def _trace_by_backward(proj: Projected, camera: Camera, labels: Tensor, num_labe
         if name == "reference":
             out = render_reference(proj, feats, camera.width, camera.height, bg, near)
         else:
-            from .kernels import rasterize
+            from .kernels.rasterize import rasterize
 
             out = rasterize(proj, feats, camera.width, camera.height, bg, near)
         (grad,) = torch.autograd.grad((out["features"] * onehot).sum(), feats, allow_unused=True)

@@ -218,7 +218,7 @@ def pixel_weights(splats: Splats, camera: Camera, pixels: Optional[np.ndarray] =
         :class:`PixelWeights` whose row r holds w_k(pixels[r]) for every splat k with non-zero weight.
     """
     from .core import _check_labels, traced_triplets
-    from .kernels import coalesce_triplets
+    from .kernels.coalesce import coalesce_triplets
 
     n = check_splats(splats)
     hw = camera.height * camera.width

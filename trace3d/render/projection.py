@@ -38,7 +38,7 @@ from torch import Tensor
 from ..errors import Trace3DError
 from ..geometry import quat_to_rotmat  # noqa: F401  (re-exported by trace3d.render)
 from ..scene import Camera
-from .glue_kernels import _camera_axes_at, _camera_point, _ray_rows, camera_points, splat_frames, use_fused
+from .kernels.glue import _camera_axes_at, _camera_point, _ray_rows, camera_points, splat_frames, use_fused
 
 ALPHA_MIN = 1.0 / 255.0  # skip a pair whose alpha is below this
 ALPHA_MAX = 0.99  # clamp alpha

@@ -1,5 +1,10 @@
 """Consistent 2D instance maps by majority vote over co-visible views (paper Sec. 3.3; ``merge`` step).
 
+This file is longer than ~800 lines on purpose: the vote, its brute-force twin, the per-view union-find,
+the association of ids across views and the quality figures the step reports against the ground truth
+are the ``merge`` step's one algorithm, read top to bottom; the quality section (~200 lines, from
+"Quality against the ground truth") is the part to move out if the file grows.
+
 For two patches P_a, P_b of a view v0, G_a and G_b are the Gaussians whose argmax patch in v0 is
 P_a (P_b) — the supplementary's argmax reduction of W — and visible in v0. Over the other views v,
 the co-visible triples are Omega = {(G_a, G_b, v) : both have a vote in v}, and

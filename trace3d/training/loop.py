@@ -44,8 +44,8 @@ from tqdm import tqdm
 from ..compiling import track as track_compile_time
 from ..errors import ConfigError, Trace3DError
 from ..gaussians import GaussianModel, all_finite
-from ..loss_kernels import surface_depth
-from ..losses import depth_normal_consistency, photometric_terms, psnr, ssim
+from .kernels.losses import surface_depth
+from .losses import depth_normal_consistency, photometric_terms, psnr, ssim
 from ..scene import Camera
 from ..threads import torch_threads
 from .optimizer import GaussianOptimizer, learning_rates

@@ -151,7 +151,7 @@ class GaussianOptimizer:
         """Adam on the Gaussians ``rows`` only (gsplat's "visible Adam"): the same update as
         ``torch.optim.Adam`` for those rows, with the step count (and so the bias corrections) of
         every step; the other rows' parameters and moments stay as they are."""
-        from .adam_kernel import adam_rows
+        from .kernels.adam import adam_rows
 
         for group in self.optimizer.param_groups:
             param = group["params"][0]

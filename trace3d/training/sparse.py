@@ -29,7 +29,7 @@ from numba import njit, prange
 
 from ..gaussians import GaussianModel
 from ..render import Splats
-from ..render.kernels import copy_rows
+from ..render.kernels.binning import copy_rows
 from ..render.projection import visible_mask
 from ..scene import Camera
 

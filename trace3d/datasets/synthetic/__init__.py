@@ -32,12 +32,11 @@ The modules, in the order a room is made:
     raycast.py            the numba ray caster (cast_ray, render_view)
     raycast_reference.py  its slow, independently written numpy twin (render_view_reference)
     writer.py             generate_scene: render every view and write the canonical scene
-    bench.py              `trace3d bench synthetic`
 
-Everything is deterministic from ``seed``.
+Everything is deterministic from ``seed``.  Its benchmark, ``trace3d bench synthetic``, is
+:mod:`trace3d.bench.synthetic`.
 """
 
-from .bench import run_bench
 from .cameras import camera_trajectory, intrinsics, look_rotation
 from .layout import RoomLayout
 from .params import SyntheticParams, params_from
@@ -52,5 +51,5 @@ __all__ = [
     "PackedScene", "Primitive", "RoomLayout", "SHAPE_BOX", "SHAPE_ELLIPSOID", "SHAPE_FRUSTUM", "SHAPE_NAMES",
     "STRUCTURE_CATEGORIES", "SyntheticParams", "Texture", "bounding_radius", "build_room", "camera_trajectory",
     "generate_scene", "intrinsics", "look_rotation", "pack_scene", "params_from", "render_view",
-    "render_view_reference", "run_bench", "to_uint8",
+    "render_view_reference", "to_uint8",
 ]

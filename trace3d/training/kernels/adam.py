@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from ..errors import Trace3DError
+from ...errors import Trace3DError
 
 
 @njit(cache=True, inline="always")

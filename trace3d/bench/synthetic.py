@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numba
 
-from .cameras import camera_trajectory
-from .params import SyntheticParams
-from .raycast import render_view
-from .room import build_room
-from .writer import generate_scene
+from ..datasets.synthetic.cameras import camera_trajectory
+from ..datasets.synthetic.params import SyntheticParams
+from ..datasets.synthetic.raycast import render_view
+from ..datasets.synthetic.room import build_room
+from ..datasets.synthetic.writer import generate_scene
 
 
 def run_bench(quick: bool = False) -> dict:

@@ -32,8 +32,8 @@ import torch
 from numba import njit, prange
 from torch import Tensor
 
-from ..errors import Trace3DError
-from ..render.kernels import exp_taylor8
+from ...errors import Trace3DError
+from ...render.kernels.tiles import exp_taylor8
 
 # Reassociation lets the per-row sums vectorise (a fixed order per compiled loop: results stay
 # deterministic and independent of the thread count); the exp keeps value-preserving flags only.

@@ -1,7 +1,7 @@
 """Fused numba loss kernels (forward + analytic backward) for the training loss: SSIM, and the
 normal-consistency term with the depth map's normals (at the end of this module).
 
-:func:`trace3d.losses.ssim` in torch builds five statistics maps, blurs them with two grouped 1D
+:func:`trace3d.training.losses.ssim` in torch builds five statistics maps, blurs them with two grouped 1D
 convolutions and combines them in about twenty elementwise operations, each a full-image temporary
 with its own autograd node, on one thread (the fit runs torch single-threaded).  At an LLFF-sized
 504x378 frame that was the largest phase outside the rasterizer (``trace3d bench fit``).  Here the
@@ -381,7 +381,7 @@ def fused_photometric(image: torch.Tensor, target: torch.Tensor) -> tuple[torch.
 def fused_ssim_applies(image: torch.Tensor, target: torch.Tensor) -> bool:
     """Whether :func:`fused_ssim` handles these inputs: [H, W, C] CPU float32/float64 pairs of one
     shape, the target without gradient, the fused kernels switched on."""
-    from .render.glue_kernels import use_fused
+    from ...render.kernels.glue import use_fused
 
     return (image.ndim == 3 and image.shape == target.shape and image.dtype == target.dtype
             and not target.requires_grad and use_fused(image, target))
@@ -389,7 +389,7 @@ def fused_ssim_applies(image: torch.Tensor, target: torch.Tensor) -> bool:
 
 def fused_ssim(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Mean SSIM of ``image`` against ``target`` ([H, W, C]; differentiable w.r.t. ``image``);
-    equal to :func:`trace3d.losses.ssim` (its twin) up to float rounding."""
+    equal to :func:`trace3d.training.losses.ssim` (its twin) up to float rounding."""
     if not fused_ssim_applies(image, target):
         raise ValueError(f"fused_ssim: needs [H, W, C] CPU float32/64 images of one shape and dtype and a target "
                          f"without gradient, got {tuple(image.shape)} {image.dtype} and {tuple(target.shape)} "
@@ -546,7 +546,7 @@ class _FusedNormalConsistency(torch.autograd.Function):
 def fused_normal_consistency_applies(rendered_normal: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor) -> bool:
     """Whether :func:`fused_normal_consistency` handles these inputs ([H, W, 3], [H, W], [H, W] CPU
     float32/float64, the fused kernels switched on)."""
-    from .render.glue_kernels import use_fused
+    from ...render.kernels.glue import use_fused
 
     return (depth.ndim == 2 and rendered_normal.shape == (*depth.shape, 3) and alpha.shape == depth.shape
             and use_fused(rendered_normal, depth, alpha))
@@ -638,7 +638,7 @@ def surface_depth(depth: torch.Tensor, alpha: torch.Tensor, median: torch.Tensor
     """The 2DGS surface depth ``(1 - r) D / alpha + r D_median`` ([H, W]; 0 where alpha <= 1e-6) of a
     render, differentiable w.r.t. all three maps: one numba pass each way for float32 CPU maps, bit
     for bit :func:`surface_depth_torch` (the twin elsewhere)."""
-    from .render.glue_kernels import use_fused
+    from ...render.kernels.glue import use_fused
 
     maps = (depth, alpha, median)
     if not (use_fused(*maps) and all(t.dtype == torch.float32 and t.shape == depth.shape for t in maps)

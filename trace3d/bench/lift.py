@@ -58,7 +58,7 @@ def _time_autograd(trainer, count: int) -> float:
 
 
 def _time_render_only(trainer, path: str, count: int) -> float:
-    from .contrastive import render_pixels
+    from ..lifting.contrastive import render_pixels
 
     times = []
     for _ in range(count):
@@ -76,11 +76,11 @@ def _time_render_only(trainer, path: str, count: int) -> float:
 
 
 def run_bench(room: Path, quick: bool = False, params: dict | None = None) -> dict:
+    from ..lifting.contrastive import ContrastiveParams, ContrastiveTrainer, lift_features
     from ..params import from_mapping, to_dict
     from ..render.pixel_weights import pixel_weights
     from ..scene import Scene
     from ..tracing.git import load_fitted, load_label_maps
-    from .contrastive import ContrastiveParams, ContrastiveTrainer, lift_features
 
     room = Path(room)
     for part in ("scene", "poses", "gaussians/point_cloud.ply"):
@@ -151,11 +151,11 @@ def compare_forms(room: Path, iterations: int = 1500, pixels: int = 1024, max_ob
     instance maps as labels, then query each of up to ``max_objects`` objects from the training view
     where it is largest (its ground-truth mask) and score the predicted masks on the test views where
     the object has at least 200 pixels (mean IoU)."""
+    from ..lifting import ObjectQuery
+    from ..lifting.contrastive import ContrastiveParams, lift_features
+    from ..lifting.query import FeatureLifted, iou
     from ..scene import Scene
     from ..tracing.git import load_fitted, load_label_maps
-    from . import ObjectQuery
-    from .contrastive import ContrastiveParams, lift_features
-    from .query import FeatureLifted, iou
 
     room = Path(room)
     scene = Scene.read(room / "scene")

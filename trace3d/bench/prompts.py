@@ -44,7 +44,7 @@ def _iou(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _rendered_cue(mask: np.ndarray, rng: np.random.Generator, shift: int) -> np.ndarray:
-    from .simulate import morph_jitter
+    from ..masks.simulate import morph_jitter
 
     dy, dx = rng.integers(-shift, shift + 1, size=2)
     moved = np.roll(mask, (int(dy), int(dx)), axis=(0, 1))
@@ -62,7 +62,7 @@ def run_bench(room: Path, views: int = 16, points: int = 3, min_pixels: int = 10
         views: the first ``views`` frames are used.
     """
     from ..lifting.self_prompt import sample_prompts
-    from .prompts import make_segmenter
+    from ..masks.prompts import make_segmenter
 
     root = Path(room)
     if (root / "scene" / "cameras.json").is_file():

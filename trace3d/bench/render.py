@@ -33,10 +33,12 @@ import numpy as np
 import torch
 
 from ..cputarget import describe
+from ..render.core import render, trace
+from ..render.kernels.binning import Binning
+from ..render.kernels.forward import forward_kernel
+from ..render.kernels.tiles import _geom_array, pack_geometry
+from ..render.projection import Splats, project
 from ..scene import Camera
-from .core import render, trace
-from .kernels import Binning, _geom_array, forward_kernel, pack_geometry
-from .projection import Splats, project
 
 log = logging.getLogger(__name__)
 

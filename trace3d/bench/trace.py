@@ -38,9 +38,9 @@ def run_bench(room: Path, quick: bool = False) -> dict:
     from ..masks.patches import read_patches
     from ..scene import Scene
     from ..training import render_view
-    from .git import load_fitted, trace_views
-    from .merge import MergeParams, merge_all
-    from .refine import find_ambiguous
+    from ..tracing.git import load_fitted, trace_views
+    from ..tracing.merge import MergeParams, merge_all
+    from ..tracing.refine import find_ambiguous
 
     room = Path(room)
     for part in ("scene", "poses", "gaussians/point_cloud.ply", "patches"):

@@ -6,7 +6,7 @@ Images are ``[H, W, C]`` tensors (channels last, as the renderer returns them) w
 - :func:`ssim`: structural similarity with an 11x11 Gaussian window (sigma 1.5), the 3DGS/2DGS
   training loss formulation (zero-padded "same" convolution, constants C1 = 0.01^2, C2 = 0.03^2).
 - :func:`photometric_loss`: ``(1 - lambda_dssim) * L1 + lambda_dssim * (1 - SSIM)`` (2DGS: 0.2); on
-  the CPU its SSIM is the fused numba kernel of :mod:`trace3d.loss_kernels` (:func:`ssim` is its twin).
+  the CPU its SSIM is the fused numba kernel of :mod:`trace3d.training.kernels.losses` (:func:`ssim` is its twin).
 - :func:`normal_consistency_loss`: the 2DGS regulariser ``mean(1 - <n_rendered, alpha * N_depth>)``;
   :func:`depth_normal_consistency` takes the depth map itself (fused numba kernel on the CPU, the
   torch composition ``depth_to_normal`` + :func:`normal_consistency_loss` as its twin elsewhere).
@@ -23,9 +23,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .geometry import depth_to_normal, depth_to_points  # noqa: F401  (their home is trace3d.geometry; kept importable here)
-from .loss_kernels import (fused_normal_consistency, fused_normal_consistency_applies, fused_photometric,
-                           fused_photometric_applies, fused_ssim, fused_ssim_applies)
+from ..geometry import depth_to_normal, depth_to_points  # noqa: F401  (their home is trace3d.geometry; kept importable here)
+from .kernels.losses import (fused_normal_consistency, fused_normal_consistency_applies, fused_photometric,
+                             fused_photometric_applies, fused_ssim, fused_ssim_applies)
 
 SSIM_C1 = 0.01**2
 SSIM_C2 = 0.03**2
@@ -134,7 +134,7 @@ def photometric_terms(image: torch.Tensor, target: torch.Tensor, lambda_dssim: f
     Returns:
         (loss, l1, ssim, psnr): the first three as :func:`photometric_loss` gives them,
         psnr = ``psnr(image.detach().clamp(0, 1), target, exact=False)``; on the CPU from the fused
-        numba pass (:func:`trace3d.loss_kernels.fused_photometric`, the same values and gradients bit
+        numba pass (:func:`trace3d.training.kernels.losses.fused_photometric`, the same values and gradients bit
         for bit), else from those functions.
     """
     if fused_photometric_applies(image, target):

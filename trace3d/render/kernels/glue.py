@@ -12,7 +12,7 @@ forward and one backward:
   :func:`splat_frames_torch` (the former code path, kept as the reference the tests compare with).
 - :func:`sh_colors`: view-dependent RGB from spherical harmonics, ``max(SH(d) + 0.5, 0)`` with
   d the unit direction from the camera centre, differentiable w.r.t. the coefficients and the
-  means.  Its torch twin is :func:`trace3d.gaussians.eval_sh` (what ``GaussianModel.colors`` ran
+  means.  Its torch twin is :func:`trace3d.render.sh.eval_sh` (what ``GaussianModel.colors`` ran
   before).
 
 All work per Gaussian, so every worker writes only its own rows: race-free and deterministic.
@@ -31,7 +31,7 @@ import torch
 from numba import njit, prange
 from torch import Tensor
 
-from ..geometry import quat_to_rotmat
+from ...geometry import quat_to_rotmat
 
 _enabled = True
 
@@ -621,7 +621,7 @@ def sh_colors_torch(means: Tensor, sh_dc: Tensor, sh_rest: Tensor, center: Tenso
     """The torch twin of :func:`sh_colors`."""
     import torch.nn.functional as F
 
-    from ..gaussians import eval_sh, num_sh_rest
+    from ..sh import eval_sh, num_sh_rest
 
     coeffs = torch.cat([sh_dc, sh_rest[:, : num_sh_rest(degree)]], dim=1)
     center = torch.as_tensor(center).to(dtype=means.dtype, device=means.device)
