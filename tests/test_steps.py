@@ -128,8 +128,8 @@ def test_every_step_rule_hashes_the_command_it_runs():
 
 def test_closures_hold_the_imports_the_hand_lists_missed():
     lift = codehash.step_modules("lift")
-    for module in ("trace3d.training.adam_kernel", "trace3d.training.loop", "trace3d.training.strategy",
-                   "trace3d.losses", "trace3d.loss_kernels", "trace3d.lifting.loss_kernel"):
+    for module in ("trace3d.training.kernels.adam", "trace3d.training.loop", "trace3d.training.strategy",
+                   "trace3d.training.losses", "trace3d.training.kernels.losses", "trace3d.lifting.kernels.contrastive"):
         assert module in lift, module
     assert "trace3d.training.step" in codehash.step_modules("merge")  # tracing.git -> read_pose_cameras
     for command in ("evaluate", "evaluate-nvos", "segment"):
@@ -138,7 +138,7 @@ def test_closures_hold_the_imports_the_hand_lists_missed():
         assert {"trace3d.lifting.query", "trace3d.lifting.self_prompt", "trace3d.lifting.labels"} <= set(
             codehash.step_modules(command)), command
     for command in ("scene", "poses", "masks", "patches", "overlay", "tables", "summary"):
-        assert "trace3d.training.adam_kernel" not in codehash.step_modules(command), command
+        assert "trace3d.training.kernels.adam" not in codehash.step_modules(command), command
     for command in ("tables", "summary", "reconstruction-table"):  # no step's handler, no benchmark, no schema
         modules = codehash.step_modules(command)
         assert not [m for m in modules if m.startswith("trace3d.steps.") and m != BY_COMMAND[command].module]
@@ -187,7 +187,7 @@ def _copy_checkout(dest: Path) -> Path:
 def test_a_change_deep_in_a_closure_changes_exactly_the_steps_that_import_it(tmp_path):
     package = _copy_checkout(tmp_path) / "trace3d"
     before = {s.command: codehash.step_hash(s.command, package) for s in STEPS}
-    with open(package / "training" / "adam_kernel.py", "a") as fh:
+    with open(package / "training" / "kernels" / "adam.py", "a") as fh:
         fh.write("# a comment\n")
     after = {s.command: codehash.step_hash(s.command, package) for s in STEPS}
     changed = {c for c in before if before[c] != after[c]}
@@ -207,7 +207,7 @@ done
 @pytest.mark.skipif(SNAKEMAKE is None, reason="snakemake is not installed")
 def test_dry_run_reruns_the_lift_after_a_change_to_the_adam_kernel(tmp_path):
     """A tiny results state (the steps up to a lift, made by a stand-in `trace3d` so that Snakemake records
-    their parameters), then a comment appended to training/adam_kernel.py: the lift's code version changed
+    their parameters), then a comment appended to training/kernels/adam.py: the lift's code version changed
     (it imports the kernel through lifting.contrastive), the scene, poses, masks and patches' did not."""
     root = _copy_checkout(tmp_path / "checkout")
     bin_dir = tmp_path / "bin"
@@ -227,7 +227,7 @@ def test_dry_run_reruns_the_lift_after_a_change_to_the_adam_kernel(tmp_path):
 
     snakemake("--cores", "1")
     assert "Nothing to be done" in snakemake("-n")
-    with open(root / "trace3d" / "training" / "adam_kernel.py", "a") as fh:
+    with open(root / "trace3d" / "training" / "kernels" / "adam.py", "a") as fh:
         fh.write("# a comment\n")
     changed = {line.strip() for line in snakemake("--list-changes", "params").splitlines()
                if line.startswith("results/")}
