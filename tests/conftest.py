@@ -14,8 +14,11 @@ os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(__file__).resolve().parent.par
 # the CPU target the entry points compile for (512-bit vectors on AVX-512 CPUs), so that the tests
 # run the code the pipeline runs; imports llvmlite only, not numba
 from trace3d.cputarget import set_wide_vectors  # noqa: E402
+# compiled kernels in the cache's subfolder for this code (trace3d.codehash.key_numba_cache); stdlib only
+from trace3d.codehash import key_numba_cache  # noqa: E402
 
 set_wide_vectors()
+key_numba_cache()
 
 
 @pytest.fixture

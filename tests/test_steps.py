@@ -235,3 +235,52 @@ def test_dry_run_reruns_the_lift_after_a_change_to_the_adam_kernel(tmp_path):
     assert "results/a/full/lift" in changed and "results/a/gaussians" in changed
     assert not changed & {f"results/a/{step}" for step in ("scene", "poses", "masks", "patches")}
     assert re.search(r"^lift +1$", snakemake("-n"), re.M)
+
+
+def _package_copy(tmp_path):
+    import shutil
+
+    from trace3d.codehash import PACKAGE
+
+    copy = tmp_path / "trace3d"
+    shutil.copytree(PACKAGE, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    return copy
+
+
+def test_the_numba_cache_folder_follows_the_kernels_code(tmp_path):
+    """A kernel's cached machine code must not outlive a change to a module it imports (numba stamps a
+    cache entry with the kernel's own file only): the cache folder's key covers the kernels' closure."""
+    from trace3d.codehash import kernel_cache_key, kernel_modules
+
+    package = _package_copy(tmp_path)
+    modules = kernel_modules(package)
+    # the per-lane helpers and the projection constants the render kernels inline, not the reports
+    assert {"trace3d.render.kernels.tiles", "trace3d.render.projection", "trace3d.training.kernels.adam",
+            "trace3d.lifting.kernels.contrastive"} <= set(modules)
+    assert not any(m.startswith(("trace3d.report", "trace3d.bench")) for m in modules), modules
+    key = kernel_cache_key(package)
+    with open(package / "report" / "effects.py", "a") as f:
+        f.write("\n# not a kernel\n")
+    assert kernel_cache_key(package) == key
+    with open(package / "render" / "projection.py", "a") as f:
+        f.write("\n# imported by the kernels\n")
+    assert kernel_cache_key(package) != key
+
+
+def test_key_numba_cache_is_idempotent_and_memoised(tmp_path):
+    from trace3d.codehash import key_numba_cache
+
+    package = _package_copy(tmp_path)
+    env = {"NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    first = key_numba_cache(env, package)
+    assert Path(first).parent == tmp_path / "cache" and env["NUMBA_CACHE_DIR"] == first
+    assert key_numba_cache(env, package) == first  # a keyed folder is not keyed again
+    memo = tmp_path / "cache" / "kernel-key.json"
+    assert memo.exists()
+    # a fresh process with the same package reads the memo; a changed kernel file gets a new folder
+    assert key_numba_cache({"NUMBA_CACHE_DIR": str(tmp_path / "cache")}, package) == first
+    with open(package / "render" / "kernels" / "tiles.py", "a") as f:
+        f.write("\n# changed\n")
+    second = key_numba_cache({"NUMBA_CACHE_DIR": str(tmp_path / "cache")}, package)
+    assert second != first and Path(second).parent == tmp_path / "cache"
+    assert key_numba_cache({}, package) is None  # no cache folder set: numba's default

@@ -37,18 +37,22 @@ def _entry_point_environment() -> None:
     CPU from numba's and torch's workers on a busy machine; sleeping waits halved forward + backward
     wall time on the 2-core box (docs/performance.md).  It takes effect only if set before torch and
     numba load their OpenMP runtime, which the step handlers import lazily, after this call.  An
-    explicit value in the environment is respected.  Numba's compile cache is left to
-    ``NUMBA_CACHE_DIR`` when set (the Makefile and the rules point it at the checkout's
-    ``.numba_cache/``), else to numba's default (``__pycache__`` beside the sources).
+    explicit value in the environment is respected.  Numba's compile cache is ``NUMBA_CACHE_DIR`` when
+    set (the Makefile and the rules point it at the checkout's ``.numba_cache/``), in its subfolder named
+    by a hash of the kernels' code and everything they import (:func:`trace3d.codehash.key_numba_cache`:
+    numba itself would load a kernel compiled before a helper in another file changed), else numba's
+    default (``__pycache__`` beside the sources).
 
     ``NUMBA_CPU_FEATURES`` with 512-bit vectors preferred on AVX-512 CPUs (:mod:`trace3d.cputarget`:
     LLVM's Intel models split the kernels' 16-lane loops into two 256-bit halves otherwise), unless the
     environment names a CPU target already.
     """
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    from .codehash import key_numba_cache
     from .cputarget import set_wide_vectors
 
     set_wide_vectors()
+    key_numba_cache()
 
 
 def _command_environment(args: argparse.Namespace) -> None:

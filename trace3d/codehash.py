@@ -24,6 +24,9 @@ from __future__ import annotations
 import ast
 import functools
 import hashlib
+import json
+import os
+import re
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parent
@@ -166,6 +169,67 @@ def files_hash(modules: list[str], package: Path = PACKAGE) -> str:
 def step_hash(command: str, package: Path = PACKAGE) -> str:
     """The code version of the step ``command``: a hash of the files of :func:`step_modules`."""
     return files_hash(step_modules(command, package), package)
+
+
+# a module that compiles numba code (the benchmarks only time it)
+KERNEL_DEFINITION = re.compile(r"@(?:numba\.)?(?:njit|jit|vectorize|guvectorize|stencil)\b|\bnumba\.(?:njit|jit)\(")
+
+
+def kernel_modules(package: Path = PACKAGE) -> list[str]:
+    """The modules whose source uses numba, with everything they import: numba's cache stamps a compiled
+    kernel with its own file only, so a change to a helper or constant it takes from another module would
+    otherwise leave the old machine code in the cache."""
+    users = []
+    for path in sorted(package.rglob("*.py")):
+        text = path.read_text(encoding="utf-8")
+        if "numba" in text and KERNEL_DEFINITION.search(text):
+            rel = path.relative_to(package).with_suffix("")
+            parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+            users.append(".".join((ROOT, *parts)))
+    return closure(tuple(users), package)
+
+
+def kernel_cache_key(package: Path = PACKAGE, memo: Path | None = None) -> str:
+    """A hash of :func:`kernel_modules`: the folder under ``NUMBA_CACHE_DIR`` that this code's compiled
+    kernels live in.  ``memo`` (a JSON file) keeps the key with a stamp of every package file's size and
+    modification time, so that a process whose package is unchanged reads the key instead of parsing the
+    import graph again."""
+    stamp = hashlib.sha1()
+    for path in sorted(package.rglob("*.py")):
+        info = path.stat()
+        stamp.update(f"{path.relative_to(package).as_posix()} {info.st_mtime_ns} {info.st_size}\n".encode())
+    stamp = stamp.hexdigest()
+    if memo is not None:
+        try:
+            data = json.loads(memo.read_text())
+            if data.get("stamp") == stamp and isinstance(data.get("key"), str):
+                return data["key"]
+        except (OSError, ValueError):
+            pass
+    key = files_hash(kernel_modules(package), package)
+    if memo is not None:
+        try:
+            memo.parent.mkdir(parents=True, exist_ok=True)
+            tmp = memo.with_name(f".{memo.name}.{os.getpid()}")
+            tmp.write_text(json.dumps({"stamp": stamp, "key": key}))
+            os.replace(tmp, memo)
+        except OSError:  # a read-only cache folder: recompute next time
+            pass
+    return key
+
+
+def key_numba_cache(environ=None, package: Path = PACKAGE) -> str | None:
+    """Point ``NUMBA_CACHE_DIR`` (when set) at its subfolder :func:`kernel_cache_key`, so that kernels
+    compiled from other code are never loaded; a folder already keyed is left as it is.  Entry points
+    call it before numba is imported (the CLI, the tests' conftest).  Returns the folder, or None."""
+    environ = os.environ if environ is None else environ
+    base = environ.get("NUMBA_CACHE_DIR")
+    if not base or environ.get("TRACE3D_NUMBA_CACHE_KEYED") == base:
+        return base or None
+    key = kernel_cache_key(package, Path(base) / "kernel-key.json")
+    environ["NUMBA_CACHE_DIR"] = str(Path(base) / key)
+    environ["TRACE3D_NUMBA_CACHE_KEYED"] = environ["NUMBA_CACHE_DIR"]
+    return environ["NUMBA_CACHE_DIR"]
 
 
 def main(argv: list[str] | None = None) -> int:
