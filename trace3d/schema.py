@@ -302,8 +302,12 @@ def step_schemas() -> dict:
                                         f"({', '.join(c.__name__ for c in classes)})")
     defs["masks"] = {"type": "object", "description": "the 2D masks: the source and each source's parameters",
                      "propertyNames": {"enum": sorted(masks)}, "additionalProperties": False, "properties": masks}
-    from .steps import Variant
+    from .steps import SCENE_KINDS, Variant
 
+    defs["scene_kind"] = {"enum": list(SCENE_KINDS), "description": "how the canonical scene is made (generated, or "
+                          "imported from a data set folder, a folder of photos or a transforms.json capture)"}
+    defs["imported_kind"] = {"enum": [k for k in SCENE_KINDS if k != "synthetic"],
+                             "description": "the scene kinds read from a `source` folder or file"}
     defs["variant"] = dataclass_schema([Variant])
     defs["variant"]["description"] = ("a variant: the settings of the paper's stages (trace3d.steps.Variant; a setting "
                                       "left out takes its default)")
