@@ -532,8 +532,13 @@ def test_schema_covers_every_dataclass_field():
     # every step section of the config refers to the generated definitions
     config_schema = yaml.safe_load((REPO / "workflow" / "schemas" / "config.schema.yaml").read_text())
     for where in (config_schema["properties"]["defaults"]["properties"], config_schema["$defs"]["scene"]["properties"]):
-        for step in set(defs) - {"variant"}:
+        for step in set(defs) - {"variant", "scene_kind", "imported_kind"}:
             assert where[step]["$ref"] == f"steps.schema.yaml#/$defs/{step}", step
+    # the scene kinds are the registry's, not a hand list
+    from trace3d.steps import SCENE_KINDS
+
+    assert defs["scene_kind"]["enum"] == list(SCENE_KINDS)
+    assert config_schema["$defs"]["scene"]["properties"]["kind"] == {"$ref": "steps.schema.yaml#/$defs/scene_kind"}
     # and a variant's settings to the one generated from trace3d.steps.Variant
     from trace3d.steps import Variant
 
