@@ -130,16 +130,9 @@ def _kernel_applies(feature_map: np.ndarray, features: np.ndarray) -> bool:
 
 
 @njit(cache=True, inline="always")
-def _squared_distance(fmap, y, x, feats, k):
-    """sum over d of (fmap[y, x, d] - feats[k, d])^2 in float32, in numpy's pairwise order (D <= 128)."""
-    n = feats.shape[1]
-    if n < 8:
-        res = np.float32(0.0)
-        for d in range(n):
-            e = fmap[y, x, d] - feats[k, d]
-            res += e * e
-        return res
-    # the eight running sums in scalars (an np.empty(8) here was a heap allocation per pixel and query)
+def _first_lanes(fmap, y, x, feats, k):
+    """The eight running sums of squares after the first eight dimensions (D >= 8), in scalars (an
+    np.empty(8) here was a heap allocation per pixel and query)."""
     e0 = fmap[y, x, 0] - feats[k, 0]
     e1 = fmap[y, x, 1] - feats[k, 1]
     e2 = fmap[y, x, 2] - feats[k, 2]
@@ -148,8 +141,22 @@ def _squared_distance(fmap, y, x, feats, k):
     e5 = fmap[y, x, 5] - feats[k, 5]
     e6 = fmap[y, x, 6] - feats[k, 6]
     e7 = fmap[y, x, 7] - feats[k, 7]
-    r0, r1, r2, r3 = e0 * e0, e1 * e1, e2 * e2, e3 * e3
-    r4, r5, r6, r7 = e4 * e4, e5 * e5, e6 * e6, e7 * e7
+    return e0 * e0, e1 * e1, e2 * e2, e3 * e3, e4 * e4, e5 * e5, e6 * e6, e7 * e7
+
+
+@njit(cache=True, inline="always")
+def _combine(lanes):
+    """numpy's pairwise combination of the eight running sums."""
+    r0, r1, r2, r3, r4, r5, r6, r7 = lanes
+    return ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+
+
+@njit(cache=True, inline="always")
+def _finish(fmap, y, x, feats, k, lanes):
+    """The full sum of squares from :func:`_first_lanes`: the other dimensions in blocks of eight, the
+    eight sums combined pairwise, then the remainder one by one (numpy's order)."""
+    n = feats.shape[1]
+    r0, r1, r2, r3, r4, r5, r6, r7 = lanes
     full = n - n % 8
     for i in range(8, full, 8):
         e0 = fmap[y, x, i] - feats[k, i]
@@ -168,11 +175,24 @@ def _squared_distance(fmap, y, x, feats, k):
         r5 += e5 * e5
         r6 += e6 * e6
         r7 += e7 * e7
-    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    res = _combine((r0, r1, r2, r3, r4, r5, r6, r7))
     for i in range(full, n):
         e = fmap[y, x, i] - feats[k, i]
         res += e * e
     return res
+
+
+@njit(cache=True, inline="always")
+def _squared_distance(fmap, y, x, feats, k):
+    """sum over d of (fmap[y, x, d] - feats[k, d])^2 in float32, in numpy's pairwise order (D <= 128)."""
+    n = feats.shape[1]
+    if n < 8:
+        res = np.float32(0.0)
+        for d in range(n):
+            e = fmap[y, x, d] - feats[k, d]
+            res += e * e
+        return res
+    return _finish(fmap, y, x, feats, k, _first_lanes(fmap, y, x, feats, k))
 
 
 @njit(cache=True, inline="always")
@@ -184,41 +204,10 @@ def _within(fmap, y, x, feats, k, t):
     n = feats.shape[1]
     if n < 8:
         return np.sqrt(_squared_distance(fmap, y, x, feats, k)) <= t
-    e0 = fmap[y, x, 0] - feats[k, 0]
-    e1 = fmap[y, x, 1] - feats[k, 1]
-    e2 = fmap[y, x, 2] - feats[k, 2]
-    e3 = fmap[y, x, 3] - feats[k, 3]
-    e4 = fmap[y, x, 4] - feats[k, 4]
-    e5 = fmap[y, x, 5] - feats[k, 5]
-    e6 = fmap[y, x, 6] - feats[k, 6]
-    e7 = fmap[y, x, 7] - feats[k, 7]
-    r0, r1, r2, r3 = e0 * e0, e1 * e1, e2 * e2, e3 * e3
-    r4, r5, r6, r7 = e4 * e4, e5 * e5, e6 * e6, e7 * e7
-    if np.sqrt(((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))) > t:
+    lanes = _first_lanes(fmap, y, x, feats, k)
+    if np.sqrt(_combine(lanes)) > t:
         return False
-    full = n - n % 8
-    for i in range(8, full, 8):
-        e0 = fmap[y, x, i] - feats[k, i]
-        e1 = fmap[y, x, i + 1] - feats[k, i + 1]
-        e2 = fmap[y, x, i + 2] - feats[k, i + 2]
-        e3 = fmap[y, x, i + 3] - feats[k, i + 3]
-        e4 = fmap[y, x, i + 4] - feats[k, i + 4]
-        e5 = fmap[y, x, i + 5] - feats[k, i + 5]
-        e6 = fmap[y, x, i + 6] - feats[k, i + 6]
-        e7 = fmap[y, x, i + 7] - feats[k, i + 7]
-        r0 += e0 * e0
-        r1 += e1 * e1
-        r2 += e2 * e2
-        r3 += e3 * e3
-        r4 += e4 * e4
-        r5 += e5 * e5
-        r6 += e6 * e6
-        r7 += e7 * e7
-    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
-    for i in range(full, n):
-        e = fmap[y, x, i] - feats[k, i]
-        res += e * e
-    return np.sqrt(res) <= t
+    return np.sqrt(_finish(fmap, y, x, feats, k, lanes)) <= t
 
 
 @njit(parallel=True, cache=True)
