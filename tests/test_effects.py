@@ -93,3 +93,18 @@ def test_no_gap_share_where_exact_masks_do_not_help(spec):
     summary, _ = effects.summarize(frame, spec["oracle"], spec["raw"])
     full = summary[(summary.masks == "default") & (summary.variant == "full")].iloc[0]
     assert math.isnan(full["NVS mIoU gap share"]) and not math.isnan(full["object mIoU gap share"])
+
+
+def test_gap_share_uses_every_seed_when_the_oracle_has_fewer(spec):
+    """The oracle run on seed 0 only: its gap per room comes from seed 0, the variant's gain from both seeds."""
+    spec = dict(spec, runs=[r for r in spec["runs"] if not (r["masks"] == "oracle" and r["seed"] == 1)])
+    frame = effects.collect(spec)
+    summary, _ = effects.summarize(frame, spec["oracle"], spec["raw"])
+    full = summary[(summary.masks == "default") & (summary.variant == "full")].iloc[0]
+    # gains: room a (10 + 10) / 2 = 10, room b (10 + 9) / 2 = 9.5; oracle gaps on seed 0: a 20, b 20
+    assert full["object mIoU gap share"] == pytest.approx(9.75 / 20.0)
+    # a seed-1 value of full that changes moves the share: the seed-1 runs are not dropped
+    frame.loc[(frame.masks == "default") & (frame.variant == "full") & (frame.seed == 1), "object mIoU"] += 4.0
+    summary, _ = effects.summarize(frame, spec["oracle"], spec["raw"])
+    full = summary[(summary.masks == "default") & (summary.variant == "full")].iloc[0]
+    assert full["object mIoU gap share"] == pytest.approx(11.75 / 20.0)

@@ -13,8 +13,9 @@ confidence interval (Student's t) are over the samples.  The *paired effect* of 
 variants on the same samples (e.g. ``full - no_merge``: what merging adds with density control on);
 its interval is the t interval of the paired differences, and ``wins`` counts the samples where the
 difference is positive.  The *gap share* of a variant is ``mean(v - raw) / mean(oracle - raw)`` over the
-samples that have all three, where ``oracle`` is the first oracle variant on exact object masks for
-the same room and seed: 0 = no better than the raw patches, 1 = as good as exact masks; it is left out
+rooms that have all three, each difference first averaged over the room's seeds (the oracle, the first
+oracle variant on exact object masks, may have fewer seeds than the variant, each paired with the raw
+patches of its own seed): 0 = no better than the raw patches, 1 = as good as exact masks; it is left out
 ("–") where that gap is under ``MIN_GAP`` points (a metric the masks' quality does not move).
 
 Output: ``effects.md`` (Markdown), ``effects.csv`` (every number) and a plot.
@@ -131,12 +132,16 @@ def summarize(frame: pd.DataFrame, oracle: list[str], raw: str) -> tuple[pd.Data
             row[f"{m} mean"], row[f"{m} ci95"], row[f"{m} n"] = mean, half, n
             share = math.nan
             if oracle_variant is not None and masks != "oracle":
+                # per room: the variant's gain over the raw patches (mean over its seeds) and the oracle's
+                # (mean over the oracle's seeds, which may be fewer: the oracle is often run on one seed)
                 v_raw = _paired(frame, masks, name, raw, m)
                 o_raw = _paired(frame, "oracle", oracle_variant, raw, m, b_masks=masks)
-                both = v_raw.merge(o_raw, on=["room", "seed"], suffixes=("_v", "_o"))
-                gap = float((both[f"{m}_a_o"] - both[f"{m}_b_o"]).mean()) if len(both) else math.nan
-                if len(both) and gap >= MIN_GAP:
-                    share = float((both[f"{m}_a_v"] - both[f"{m}_b_v"]).mean()) / gap
+                gain = (v_raw[f"{m}_a"] - v_raw[f"{m}_b"]).groupby(v_raw["room"]).mean()
+                room_gap = (o_raw[f"{m}_a"] - o_raw[f"{m}_b"]).groupby(o_raw["room"]).mean()
+                rooms = gain.index.intersection(room_gap.index)
+                gap = float(room_gap[rooms].mean()) if len(rooms) else math.nan
+                if len(rooms) and gap >= MIN_GAP:
+                    share = float(gain[rooms].mean()) / gap
             row[f"{m} gap share"] = share
         rows.append(row)
     summary = pd.DataFrame(rows)
