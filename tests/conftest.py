@@ -4,7 +4,12 @@ numba's kernels need) and numba's compile cache in the checkout, so that only th
 clone compiles.  Both must be set before torch and numba are imported, which happens when pytest
 imports the test modules, after this file.  An explicit value in the environment is respected."""
 
+import atexit
 import os
+import re
+import shutil
+import socket
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -19,6 +24,40 @@ from trace3d.codehash import key_numba_cache  # noqa: E402
 
 set_wide_vectors()
 key_numba_cache()
+
+
+def _slurm_controller_down() -> bool:
+    """Whether SLURM's client (``scontrol``) is installed but no controller listens where its
+    slurm.conf says (or there is no slurm.conf): a connection attempt of at most 0.5 s."""
+    if shutil.which("scontrol") is None:
+        return False
+    conf = Path(os.environ.get("SLURM_CONF", "/etc/slurm/slurm.conf"))
+    try:
+        text = conf.read_text()
+    except OSError:
+        return True
+    host = re.search(r"^\s*(?:SlurmctldHost|ControlMachine)\s*=\s*([^\s(#]+)(?:\(([^)\s]+)\))?", text, re.M | re.I)
+    port = re.search(r"^\s*SlurmctldPort\s*=\s*(\d+)", text, re.M | re.I)
+    if host is None:
+        return True
+    try:
+        socket.create_connection((host.group(2) or host.group(1), int(port.group(1)) if port else 6817),
+                                 timeout=0.5).close()
+    except OSError:
+        return True
+    return False
+
+
+# Snakemake loads its SLURM executor plugin (pinned for the cluster profile) at every start, and the plugin
+# runs `scontrol show config` to word a help text: with SLURM's client installed but no controller running
+# that call waits ~9 s, at each of the suite's ~45 Snakemake runs. Then (and only then: tests/test_slurm.py
+# skips without a controller) an `scontrol` that fails at once goes first on PATH for the test processes.
+if _slurm_controller_down():
+    _stub = Path(tempfile.mkdtemp(prefix="trace3d-tests-bin-"))
+    atexit.register(shutil.rmtree, _stub, True)
+    (_stub / "scontrol").write_text("#!/bin/sh\n# tests/conftest.py: no SLURM controller runs here\nexit 1\n")
+    (_stub / "scontrol").chmod(0o755)
+    os.environ["PATH"] = f"{_stub}{os.pathsep}{os.environ.get('PATH', '')}"
 
 
 @pytest.fixture

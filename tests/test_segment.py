@@ -16,6 +16,7 @@ from test_workflow import SNAKEMAKE, run_snakemake
 from trace3d.cli import main as cli_main
 from trace3d.errors import ConfigError
 from trace3d.gaussians import GaussianModel
+from trace3d.scene import Scene
 from trace3d.segment import SegmentParams, contact_sheet
 
 WRITERS = {"blender": write_blender, "instant-ngp": write_instant_ngp, "nerfstudio": write_nerfstudio}
@@ -47,19 +48,24 @@ def room(tmp_path_factory):
 @pytest.mark.slow
 @pytest.mark.skipif(SNAKEMAKE is None, reason="snakemake is not installed")
 def test_transforms_captures_run_the_whole_dag_to_object_plys(room, tmp_path):
-    """All three conventions in one Snakemake run: every capture ends in object PLYs that read back, the
-    contact sheet goes into the report, and no evaluation runs (no ground truth)."""
+    """An instant-ngp capture (the convention whose world is moved: scaled, rotated, offset) through the
+    whole DAG: it ends in object PLYs that read back, the contact sheet goes into the report, and no
+    evaluation runs (no ground truth). The other two conventions through the workflow's scene step only:
+    after the import every step reads the same scene files whatever the convention (each convention's
+    import is checked against the room in tests/test_transforms.py), and a whole DAG per capture cost
+    ~11 more jobs each."""
     captures = tmp_path / "captures"
+    names = {}  # convention -> {imported camera name: the room's}
     for name, writer in WRITERS.items():
         (captures / name).mkdir(parents=True)
-        writer(room, captures / name)
+        names[name] = writer(room, captures / name)
     config = {"data_root": str(captures), "defaults": CAPTURE_DEFAULTS,
-              "scenes": {name: {"kind": "transforms", "source": name} for name in WRITERS}}
-    # minutes on an idle machine with numba's cache warm; the cold compile of the fit's, trace's and lift's
-    # kernels on a loaded machine takes longer
+              "scenes": {"instant-ngp": {"kind": "transforms", "source": "instant-ngp"}}}
+    # a minute or two on an idle machine with numba's cache warm; the cold compile of the fit's, trace's and
+    # lift's kernels on a loaded machine takes longer
     result = run_snakemake(tmp_path, "--cores", "2", "reproduce", config=config, timeout=2400)
     assert result.returncode == 0, result.stderr[-4000:]
-    for name in WRITERS:
+    for name in config["scenes"]:
         seg = tmp_path / "results" / name / "full" / "segment"
         info = json.loads((seg / "segment.json").read_text())
         assert info["objects"], (name, info)
@@ -83,6 +89,17 @@ def test_transforms_captures_run_the_whole_dag_to_object_plys(room, tmp_path):
                            config=config)
     assert report.returncode == 0, report.stderr[-4000:]
     assert "Objects (no ground truth)" in (tmp_path / "report.html").read_text(errors="replace")
+    # the other conventions: the workflow's scene step imports each (the same room, its own convention)
+    others = [name for name in WRITERS if name not in config["scenes"]]
+    every = {**config, "scenes": {name: {"kind": "transforms", "source": name} for name in WRITERS}}
+    result = run_snakemake(tmp_path, "--cores", "2", *(f"results/{name}/scene" for name in others), config=every)
+    assert result.returncode == 0, result.stderr[-4000:]
+    for name in others:
+        imported = Scene.read(tmp_path / "results" / name / "scene")
+        assert imported.meta["convention"] == name and imported.meta["importer"] == "transforms"
+        assert sorted(c.name for c in imported.cameras) == sorted(names[name])
+        for cam in imported.cameras:
+            np.testing.assert_array_equal(imported.image(cam.name), room.image(names[name][cam.name]))
 
 
 @pytest.mark.skipif(SNAKEMAKE is None, reason="snakemake is not installed")
