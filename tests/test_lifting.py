@@ -371,6 +371,23 @@ def test_contrastive_lifting_separates_two_objects():
         assert (gaussians == (truth == obj)).mean() > 0.9
 
 
+def test_visibility_streams_the_views_and_equals_the_cached_sum():
+    """Without a query, the visibility is summed view by view (no view's weights kept) to the same bits
+    as the sum over the cached training-view weights; a query afterwards computes and keeps those."""
+    from trace3d.lifting.query import summed_weights
+
+    model, _, cameras = two_objects()
+    features = np.random.default_rng(0).normal(size=(len(model), 4)).astype(np.float32)
+    streamed = FeatureLifted(model, features, cameras)
+    total = streamed.visibility()
+    assert streamed._weights is None and total.shape == (len(model),) and (total > 0).any()
+    cached = FeatureLifted(model, features, cameras)
+    weights = cached.train_weights()
+    np.testing.assert_array_equal(total, summed_weights(weights))
+    np.testing.assert_array_equal(cached.visibility(), total)
+    assert total.tobytes() == summed_weights(weights).tobytes()
+
+
 def test_trace_object_majority():
     model, truth, cameras = two_objects()
     masks = [pixel_x_world(c) < 0.0 for c in cameras]

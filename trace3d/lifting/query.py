@@ -524,9 +524,23 @@ class FeatureLifted:
         return self._weights
 
     def visibility(self) -> np.ndarray:
-        """[N] float64: every Gaussian's blending weight summed over all training pixels (computed once,
-        with :meth:`train_weights`)."""
-        self.train_weights()
+        """[N] float64: every Gaussian's blending weight summed over all training pixels (computed once).
+
+        From the cached :meth:`train_weights` when a query has computed them; otherwise view by view,
+        each view's pixel weights dropped after its sum (the same sums in the same order as
+        :func:`summed_weights`, so the same bits): a caller that needs the visibility only (the
+        ``segment`` step, the panoptic score of a scene without queries) never holds every view's
+        [pixels x Gaussians] weights at once (about 90 MB per 640x480 view, docs/scale.md)."""
+        if self._total is None:
+            from ..render.pixel_weights import pixel_weights
+
+            splats = self.model.splats()
+            total = np.zeros(len(self.model), np.float64)
+            with torch.no_grad():
+                for c in self.train_cameras:
+                    w = pixel_weights(splats, c, near=self.params.near)
+                    total += np.bincount(w.indices, weights=w.weights, minlength=len(self.model))
+            self._total = total
         return self._total
 
     def _reference_camera(self, query: ObjectQuery) -> Camera:

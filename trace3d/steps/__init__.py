@@ -230,6 +230,14 @@ STEPS: tuple[Step, ...] = (
           arg("--out", required=True, help="Markdown table (a CSV is written beside it)"),
           arg("--plot", help="PNG bars of the merge quality before / after")),
          ("trace3d.report.tracing:write_tracing_table",), rules=("tracing_table",), kernels=False),
+    Step("scale-table", "every step's CPU time and peak memory at two scene sizes, and their growth with "
+                        "views x pixels (docs/scale.md)",
+         (arg("--results", required=True, help="results folder holding benchmarks/<scene>/ and <scene>/scene/ "
+                                               "(config/scale.yaml: results/scale)"),
+          arg("--small", required=True, help="the smaller scene's name (s320)"),
+          arg("--large", required=True, help="the larger scene's name (s640)"),
+          arg("--out", required=True, help="Markdown table (docs/bench/scale.md; a CSV is written beside it)")),
+         ("trace3d.report.scale:write_scale_table",), kernels=False),
 )
 BY_COMMAND = {s.command: s for s in STEPS}
 BY_RULE = {rule: s for s in STEPS for rule in s.rules}

@@ -383,6 +383,9 @@ def run_refine(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: P
             "ambiguous_near_boundary": float(near_edge[ambiguous0].mean()) if ambiguous0.any() else None,
             "all_near_boundary": float(near_edge.mean()) if len(model) else None,
         }
+    # the fitted scene's GIT table [N, L] is not needed past here: not held through the retraining, whose
+    # detections build their own (3.4 GB each at 1.28 M Gaussians x 219 views, docs/scale.md)
+    del stats0
 
     result = fit(with_generation(model), train, images, train_params, extent=extent, strategy=strategy,
                  desc="GIT-guided refine")
