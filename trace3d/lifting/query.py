@@ -29,7 +29,7 @@ import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Iterable, Sequence
 
 import cv2
 import numpy as np
@@ -428,13 +428,16 @@ def _add_masked_rows(inside, pixels, indptr, indices, weights, fg, view, touched
         touched[g] = False
 
 
-def summed_weights(weights: Sequence) -> np.ndarray:
-    """[N] float64: every Gaussian's blending weight summed over all pixels of the given views."""
-    n = weights[0].num_gaussians if weights else 0
-    total = np.zeros(n, np.float64)
+def summed_weights(weights: Iterable, num_gaussians: int | None = None) -> np.ndarray:
+    """[N] float64: every Gaussian's blending weight summed over all pixels of the given views, in
+    their order. ``weights`` may be a generator (one view's weights held at a time); ``num_gaussians``
+    gives N when there may be no view (default: the first view's)."""
+    total = None if num_gaussians is None else np.zeros(num_gaussians, np.float64)
     for w in weights:
-        total += np.bincount(w.indices, weights=w.weights, minlength=n)
-    return total
+        if total is None:
+            total = np.zeros(w.num_gaussians, np.float64)
+        total += np.bincount(w.indices, weights=w.weights, minlength=len(total))
+    return np.zeros(0, np.float64) if total is None else total
 
 
 def query_key(query: ObjectQuery) -> str:
@@ -535,12 +538,9 @@ class FeatureLifted:
             from ..render.pixel_weights import pixel_weights
 
             splats = self.model.splats()
-            total = np.zeros(len(self.model), np.float64)
             with torch.no_grad():
-                for c in self.train_cameras:
-                    w = pixel_weights(splats, c, near=self.params.near)
-                    total += np.bincount(w.indices, weights=w.weights, minlength=len(self.model))
-            self._total = total
+                self._total = summed_weights((pixel_weights(splats, c, near=self.params.near)
+                                              for c in self.train_cameras), len(self.model))
         return self._total
 
     def _reference_camera(self, query: ObjectQuery) -> Camera:
