@@ -253,11 +253,11 @@ def test_single_point_shares_traced_objects_only_when_the_query_points_agree(tin
         # the stacked one-call masks against each view's own mask
         points = lifted.query_points(q)
         stacked = lifted.train_masks(points)
-        assert len(stacked) == len(train) and lifted._stack[0] is not None
+        assert len(stacked) == len(train)
         for cam, m in zip(train, stacked):
             np.testing.assert_array_equal(m, points.mask(fresh_many.feature_map(cam)))
     # what the cache holds: one entry per distinct query-point content
-    assert len(lifted._by_points) == len({(lifted.query_points(q).features.tobytes(),
+    assert len(lifted._shared.by_points) == len({(lifted.query_points(q).features.tobytes(),
                                            lifted.query_points(q).thresholds.tobytes()) for q in queries}
                                          | {(one.query_points(q).features.tobytes(),
                                              one.query_points(q).thresholds.tobytes()) for q in queries})
@@ -282,3 +282,123 @@ def test_bench_evaluate_reports_every_phase_and_the_step_metrics(tiny_features, 
     direct = run(tiny_features, tmp_path / "direct", **{"object_files": True})
     for key in ("extraction", "nvs", "objects", "skipped", "gaussians"):
         assert json.dumps(saved[key]) == json.dumps(direct[key])
+
+
+def _lifted_and_queries(root, **kwargs):
+    from trace3d.evaluation.groundtruth import GroundTruth
+    from trace3d.evaluation.params import EvaluateParams
+    from trace3d.lifting.query import FeatureLifted
+    from trace3d.scene import Scene
+    from trace3d.tracing.git import load_fitted
+
+    scene = Scene.read(root / "scene")
+    model, cameras = load_fitted(scene, None, root / "gaussians")
+    train = [c for c in cameras if c.split == "train"]
+    features = np.load(root / "lift" / "features.npy")
+    gt = GroundTruth(scene, cameras, EvaluateParams(**{k: v for k, v in QUICK.items() if not k.startswith("panoptic")}))
+    queries = [q for q in (gt.query(oid) for oid in gt.object_ids) if q is not None]
+    assert len(queries) >= 3
+    return FeatureLifted(model, features, train, **kwargs), queries, cameras, train
+
+
+def test_the_pass_over_the_views_equals_the_all_views_at_once_path(tiny_features):
+    """Every object's Gaussians, masks and the visibility from one planned pass over the views (one
+    view's weights at a time, the single-point sibling in the same pass) are, bit for bit, those of the
+    path that holds every training view's pixel weights and feature maps at once (the twin)."""
+    from trace3d.lifting.query import FeatureLifted, QueryParams, summed_weights
+
+    lifted, queries, cameras, train = _lifted_and_queries(tiny_features, map_budget_mb=0)
+    one = lifted.with_query(max_queries=1)
+    for q in queries:
+        lifted.plan(q, cameras)
+        one.plan(q, cameras[::2])
+    lifted.run_plan()
+    assert not lifted._shared.pending_traces and not lifted._shared.pending_masks
+    at_once = FeatureLifted(lifted.model, lifted.features, train)
+    at_once_one = FeatureLifted(lifted.model, lifted.features, train, QueryParams(max_queries=1))
+    weights = at_once.train_weights()
+    assert len(weights) == len(train)
+    assert lifted.visibility().tobytes() == summed_weights(weights).tobytes()
+    for q in queries:
+        for scene_, twin, cams in ((lifted, at_once, cameras), (one, at_once_one, cameras[::2])):
+            keep = scene_.object_gaussians(q)
+            expected = twin.object_gaussians_at_once(q)
+            assert keep.dtype == bool and keep.any()
+            np.testing.assert_array_equal(keep, expected)
+            points = twin.query_points(q)
+            np.testing.assert_array_equal(scene_.query_points(q).features, points.features)
+            for cam, m in zip(cams, scene_.object_masks(q, cams)):
+                assert m.dtype == bool
+                np.testing.assert_array_equal(m, points.mask(twin.feature_map(cam)))
+    # the masks came from the pass (stored), not from feature maps rendered afterwards
+    assert len(lifted._shared.masks) >= len(queries) * len(cameras)
+    # a query that was not planned gets a pass of its own, with the same answer
+    fresh = FeatureLifted(lifted.model, lifted.features, train)
+    np.testing.assert_array_equal(fresh.object_gaussians(queries[0]), at_once.object_gaussians_at_once(queries[0]))
+
+
+def test_the_pass_holds_one_view_at_a_time(tiny_features, monkeypatch):
+    """Instrumented: however many views there are, the pass keeps at most one view's pixel weights
+    (and, with no map budget, one feature map) alive, and computes each training view's weights once."""
+    import weakref
+
+    import trace3d.lifting.contrastive as contrastive
+    import trace3d.render.pixel_weights as pw
+
+    live = {"weights": 0, "maps": 0}
+    peak = {"weights": 0, "maps": 0}
+    calls = {"weights": 0, "maps": 0}
+
+    def counted(kind, fn):
+        def wrapper(*args, **kwargs):
+            out = fn(*args, **kwargs)
+            calls[kind] += 1
+            live[kind] += 1
+            peak[kind] = max(peak[kind], live[kind])
+            weakref.finalize(out, lambda: live.__setitem__(kind, live[kind] - 1))
+            return out
+        return wrapper
+
+    monkeypatch.setattr(pw, "pixel_weights", counted("weights", pw.pixel_weights))
+    monkeypatch.setattr(contrastive, "render_feature_map", counted("maps", contrastive.render_feature_map))
+    lifted, queries, cameras, train = _lifted_and_queries(tiny_features, map_budget_mb=0)
+    one = lifted.with_query(max_queries=1)
+    for q in queries:
+        lifted.plan(q, cameras)
+        one.plan(q, cameras)
+    peak.update(weights=0, maps=0)
+    calls.update(weights=0, maps=0)
+    lifted.run_plan()
+    assert calls["weights"] == len(train) and peak["weights"] == 1
+    assert calls["maps"] == len(cameras) and peak["maps"] == 1
+    # the answers need no further view
+    for q in queries:
+        lifted.object_gaussians(q), one.object_gaussians(q), lifted.object_masks(q, cameras)
+    assert calls["weights"] == len(train) and calls["maps"] == len(cameras)
+
+
+def test_evaluate_metrics_are_those_of_the_all_views_at_once_path(tiny_features, tmp_path, monkeypatch):
+    """The evaluation with its one pass over the views writes the same metrics.json, bytes but the
+    seconds, as the evaluation that traces each object from every view's weights held at once."""
+    from trace3d.lifting.query import FeatureLifted
+
+    def without_seconds(path):
+        data = json.loads(path.read_text())
+        data.pop("seconds")
+        data["single_point"].pop("seconds")
+        data["panoptic"].pop("seconds")
+        return json.dumps(data, sort_keys=True)
+
+    run(tiny_features, tmp_path / "streamed", picture_objects=2)
+    monkeypatch.delattr(FeatureLifted, "plan")
+    monkeypatch.setattr(FeatureLifted, "object_gaussians", FeatureLifted.object_gaussians_at_once)
+    run(tiny_features, tmp_path / "at_once", picture_objects=2)
+    assert without_seconds(tmp_path / "streamed" / "metrics.json") == without_seconds(tmp_path / "at_once" / "metrics.json")
+    for protocol in ("official",):
+        run(tiny_features, tmp_path / f"{protocol}-at-once", protocol=protocol, picture_objects=2)
+        monkeypatch.undo()
+        run(tiny_features, tmp_path / f"{protocol}-streamed", protocol=protocol, picture_objects=2)
+        a = json.loads((tmp_path / f"{protocol}-at-once" / "metrics.json").read_text())
+        b = json.loads((tmp_path / f"{protocol}-streamed" / "metrics.json").read_text())
+        a.pop("seconds"), b.pop("seconds")
+        assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)

@@ -259,7 +259,7 @@ def run_extract(scene, poses_dir: Path | None, gaussians_dir: Path, lift_dir: Pa
     keep = np.asarray(lifted.object_gaussians(query), bool).copy()
     traced = int(keep.sum())
     if p.connected and keep.any():
-        under = _gaussians_at(lifted.train_weights()[train.index(camera)], x, y)
+        under = _gaussians_at(lifted.view_weights(camera), x, y)
         seeds = np.zeros(len(model), bool)
         seeds[under] = True
         seeds &= keep

@@ -55,9 +55,11 @@ def object_mask(instances: np.ndarray, member: np.ndarray) -> np.ndarray:
 
 
 def _leaf_ids(instances: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
-    """(ids [H, W] int64, ids < size) of a leaf-id map: what :func:`object_mask` computes per object,
-    computed once per view."""
-    ids = instances.astype(np.int64)
+    """(ids [H, W], ids < size) of a leaf-id map: what :func:`object_mask` computes per object,
+    computed once per view. An unsigned map of up to 32 bits (the PNGs' uint16) is kept as it is (the
+    same comparisons, indices and counts as its int64 copy, which took 8 bytes per pixel of every view
+    for the evaluation's length); any other map becomes int64."""
+    ids = instances if instances.dtype.kind == "u" and instances.dtype.itemsize <= 4 else instances.astype(np.int64)
     return ids, ids < size
 
 

@@ -133,6 +133,11 @@ def run_evaluate(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Path, l
             images[frame] = scene.image(frame).astype(np.float32) / 255.0
         return images[frame]
 
+    # the single-point sibling is made first, so that its queries join the one pass over the views
+    one = lifted.with_query(max_queries=1) if p.single_point and hasattr(lifted, "with_query") else None
+    if hasattr(lifted, "plan"):
+        with ph("object_gaussians"):
+            _plan_queries(lifted, one, gt, by_name)
     objects, skipped, picture_data = [], [], {}
     bar = tqdm(gt.object_ids, desc="evaluate objects", leave=False,
                mininterval=0.5 if sys.stderr.isatty() else 30.0)
@@ -165,7 +170,7 @@ def run_evaluate(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Path, l
         frames = ext_frames or nvs_frames
         if frames:
             with ph("picture_renders"):
-                best = max(frames, key=lambda f: (int(gt.mask(oid, f).sum()), f))
+                best = _picture_frame(gt, oid, frames)
                 rgb, _ = render_alone(obj_model, by_name[best], p.near)
                 pred = nvs_preds[nvs_frames.index(best)] if best in nvs_frames else \
                     lifted.object_masks(query, [by_name[best]])[0]
@@ -175,7 +180,7 @@ def run_evaluate(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Path, l
     extra = {}
     if p.single_point:
         with ph("single_point"):
-            extra["single_point"] = _single_point(lifted, lift_info, gt, model, by_name, image, p, lift_dir)
+            extra["single_point"] = _single_point(lifted, lift_info, gt, model, by_name, image, p, lift_dir, one)
     if p.panoptic:
         with ph("panoptic"):
             extra["panoptic"] = _panoptic(lifted, lift_info, gt, cameras, by_name, p)
@@ -226,6 +231,32 @@ def run_evaluate(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Path, l
     return metrics
 
 
+def _picture_frame(gt: GroundTruth, oid: int, frames: list[str]) -> str:
+    """The picture view among ``frames`` (the scored extraction views, else NVS views): the one with the
+    most ground-truth pixels (ties: the later name)."""
+    return max(frames, key=lambda f: (int(gt.mask(oid, f).sum()), f))
+
+
+def _plan_queries(lifted, one, gt: GroundTruth, by_name: dict) -> None:
+    """Ask the lifted scene (and its single-point sibling ``one``) for what the object loop will ask,
+    then answer it all in one pass over the views (:meth:`~trace3d.lifting.query.FeatureLifted.plan`):
+    per object its Gaussians and its masks at the NVS views and at the picture view."""
+    for oid in gt.object_ids:
+        query = gt.query(oid)
+        if query is None:
+            continue
+        ext_frames, nvs_frames = gt.extraction_views(oid), gt.nvs_views(oid)
+        frames = list(nvs_frames)
+        if ext_frames or nvs_frames:
+            best = _picture_frame(gt, oid, ext_frames or nvs_frames)
+            if best not in frames:
+                frames.append(best)
+        lifted.plan(query, [by_name[f] for f in frames])
+        if one is not None:
+            one.plan(query, [by_name[f] for f in nvs_frames])
+    lifted.run_plan()
+
+
 def _score_object(lifted, query, oid: int, gt: GroundTruth, model, by_name: dict, image, p: EvaluateParams,
                   lift_dir: Path, ph: Phases | None = None):
     """Both tasks for one object: (keep [N] bool, extraction frames, NVS frames, extraction scores,
@@ -269,13 +300,14 @@ def _summary(objects: list[dict], p: EvaluateParams) -> dict:
 
 
 def _single_point(lifted, lift_info: dict, gt: GroundTruth, model, by_name: dict, image, p: EvaluateParams,
-                  lift_dir: Path) -> dict:
-    """Both tasks again with the lifted scene queried by one query point (``max_queries: 1``): the same
-    objects, references, views and means as the multi-point protocol."""
+                  lift_dir: Path, one=None) -> dict:
+    """Both tasks again with the lifted scene queried by one query point (``max_queries: 1``; ``one``:
+    that sibling, if made already): the same objects, references, views and means as the multi-point
+    protocol."""
     if not hasattr(lifted, "with_query"):
         return {"skipped": f"lifting method {lift_info.get('method', '?')!r} has no query points"}
     start = time.perf_counter()
-    one = lifted.with_query(max_queries=1)
+    one = one if one is not None else lifted.with_query(max_queries=1)
     objects = []
     for oid in gt.object_ids:
         query = gt.query(oid)

@@ -17,8 +17,10 @@ The object's Gaussians are traced from the masks predicted at the training views
 extracts objects): each view's mask is traced (weights summed per Gaussian over object and
 background pixels) and a Gaussian is the object's when its object share of the summed weight over
 all views exceeds ``gaussian_share`` (0.5: the majority). The geometry is frozen, so the trace is a
-product with each training view's pixel weights, computed once per lifted scene
-(:func:`trace_object_weights`); :func:`trace_object`, GIT through the rasterizer, is its twin.
+product with each training view's pixel weights (:func:`trace_object_weights`); :func:`trace_object`,
+GIT through the rasterizer, is its twin. The evaluation plans all its queries and answers them in one
+pass over the views, one view's pixel weights and feature map held at a time
+(:meth:`FeatureLifted.plan`, :meth:`FeatureLifted.run_plan`).
 """
 
 from __future__ import annotations
@@ -254,6 +256,26 @@ def _query_mask_stack(stack, feats, thresholds, out):
             out[i, y, x] = hit
 
 
+@njit(parallel=True, cache=True)
+def _query_mask_objects(fmap, feats, thresholds, starts, out):
+    """:func:`_query_mask` of several objects' query points at one view in one call: object ``o`` has
+    the points ``starts[o]:starts[o + 1]`` of ``feats`` [sum Q_o, D] and ``thresholds``; ``out`` is
+    [O, H, W] (the evaluation's pass asks every object's mask at each view; one parallel launch per
+    view)."""
+    o_count = out.shape[0]
+    h, w, _ = fmap.shape
+    for oy in prange(o_count * h):
+        o = oy // h
+        y = oy - o * h
+        for x in range(w):
+            hit = False
+            for k in range(starts[o], starts[o + 1]):
+                if _within(fmap, y, x, feats, k, thresholds[k]):
+                    hit = True
+                    break
+            out[o, y, x] = hit
+
+
 def iou(a: np.ndarray, b: np.ndarray) -> float:
     union = np.logical_or(a, b).sum()
     return float(np.logical_and(a, b).sum() / union) if union else 1.0
@@ -436,19 +458,83 @@ def summed_weights(weights: Iterable, num_gaussians: int | None = None) -> np.nd
     for w in weights:
         if total is None:
             total = np.zeros(w.num_gaussians, np.float64)
-        total += np.bincount(w.indices, weights=w.weights, minlength=len(total))
+        _add_view_total(total, w)
     return np.zeros(0, np.float64) if total is None else total
+
+
+def _add_view_total(total: np.ndarray, w) -> None:
+    """total += one view's per-Gaussian sums (``np.bincount``'s order: the view's entries in order)."""
+    total += np.bincount(w.indices, weights=w.weights, minlength=len(total))
 
 
 def query_key(query: ObjectQuery) -> str:
     return query.reference + ":" + hashlib.sha1(np.packbits(np.asarray(query.mask, bool)).tobytes()).hexdigest()
 
 
+def _points_key(q: QueryPoints) -> bytes:
+    """What a mask of ``q`` is a function of: the query features and thresholds (bytes)."""
+    return b"".join((str(q.features.shape).encode(), q.features.tobytes(), q.thresholds.tobytes()))
+
+
+class _FeatureMaps:
+    """Rendered feature maps by view name, least recently used dropped beyond ``budget_bytes`` (a map
+    is a function of the view only, so a dropped one is rendered again to the same bits)."""
+
+    def __init__(self, budget_bytes: int):
+        from collections import OrderedDict
+
+        self.budget = int(budget_bytes)
+        self.maps: "OrderedDict[str, np.ndarray]" = OrderedDict()
+        self.bytes = 0
+
+    def get(self, name: str) -> np.ndarray | None:
+        fmap = self.maps.get(name)
+        if fmap is not None:
+            self.maps.move_to_end(name)
+        return fmap
+
+    def put(self, name: str, fmap: np.ndarray) -> None:
+        if fmap.nbytes > self.budget:
+            return
+        self.maps[name] = fmap
+        self.bytes += fmap.nbytes
+        while self.bytes > self.budget:
+            _, old = self.maps.popitem(last=False)
+            self.bytes -= old.nbytes
+
+
+class _Shared:
+    """What :meth:`FeatureLifted.with_query` siblings share (none of it depends on the query parameters
+    but ``near``): the feature-map cache, the summed visibility, the traced object Gaussians and the
+    stored masks by query-point content, and the queries planned for the next pass over the views."""
+
+    def __init__(self, map_budget_bytes: int):
+        self.maps = _FeatureMaps(map_budget_bytes)
+        self.total: np.ndarray | None = None
+        # object Gaussians by (share, query-point content): one query point is often all that the full
+        # search keeps, and then both protocols trace alike
+        self.by_points: dict[bytes, np.ndarray] = {}
+        self.masks: dict[tuple[bytes, str], tuple[np.ndarray, tuple[int, int]]] = {}  # packed bits, (H, W)
+        self.pending_traces: dict[bytes, tuple[QueryPoints, float]] = {}
+        self.pending_masks: dict[str, dict[bytes, QueryPoints]] = {}  # by camera name
+        self.pending_cameras: dict[str, Camera] = {}
+
+
 class FeatureLifted:
-    """A :class:`~trace3d.lifting.LiftedScene` over lifted features (method ``"contrastive"``)."""
+    """A :class:`~trace3d.lifting.LiftedScene` over lifted features (method ``"contrastive"``).
+
+    The evaluation asks for every object's Gaussians, traced from its masks at every training view,
+    and its masks at the scored views. Rather than keeping every training view's pixel weights and
+    feature map (about 24 GB at 640x480 with 219 views, docs/scale.md), the queries are *planned*
+    (:meth:`plan`) and answered by one pass over the views (:meth:`run_plan`) that holds one view's
+    pixel weights and feature map at a time and, per traced object, one [N] float64 accumulator; the
+    sums are those of the all-views-at-once path (:meth:`object_gaussians_at_once`, the twin): per
+    object, views in order, a view's masked rows in order. A query that was not planned is answered
+    by a pass of its own.
+    """
 
     def __init__(self, model: GaussianModel, features: np.ndarray, train_cameras: Sequence[Camera],
-                 params: QueryParams | None = None):
+                 params: QueryParams | None = None, map_budget_mb: float = 256.0):
         if features.shape[0] != len(model):
             raise Trace3DError(f"contrastive lift: {features.shape[0]} features for {len(model)} Gaussians; was it "
                                f"lifted on these Gaussians?")
@@ -456,92 +542,171 @@ class FeatureLifted:
         self.features = np.asarray(features, np.float32)
         self.train_cameras = list(train_cameras)
         self.params = params or QueryParams()
+        self.map_budget_mb = map_budget_mb
         self._queries: dict[str, QueryPoints] = {}
-        self._maps: dict[str, np.ndarray] = {}
         self._gaussians: dict[str, np.ndarray] = {}
-        # object Gaussians by the query points' content (shared with :meth:`with_query` siblings: one
-        # query point is often all that the full search keeps, and then both protocols trace alike)
-        self._by_points: dict[bytes, np.ndarray] = {}
-        self._stack: list = [None]  # [V, H, W, D] feature maps of the training views (shared by siblings)
-        self._weights: list | None = None
-        self._total: np.ndarray | None = None
+        self._shared = _Shared(int(map_budget_mb * 2**20))
 
     def with_query(self, **overrides) -> "FeatureLifted":
         """The same lifted scene queried with other :class:`QueryParams` (e.g. ``max_queries=1``, the
-        evaluation's single-query-point protocol); it shares the rendered feature maps and the training
-        views' pixel weights with this one (they do not depend on the query parameters)."""
+        evaluation's single-query-point protocol); it shares the rendered feature maps, the visibility,
+        the traced objects and the planned pass with this one (they do not depend on the query
+        parameters), so that queries planned on both are answered by one pass over the views."""
         params = dataclasses.replace(self.params, **overrides)
-        other = FeatureLifted(self.model, self.features, self.train_cameras, params)
-        if params.near != self.params.near:
-            return other
-        other._maps = self._maps
-        if self._weights is None:
-            self.train_weights()
-        other._weights, other._total = self._weights, self._total
-        other._by_points = self._by_points
-        other._stack = self._stack
+        other = FeatureLifted(self.model, self.features, self.train_cameras, params, self.map_budget_mb)
+        if params.near == self.params.near:
+            other._shared = self._shared
         return other
 
     def feature_map(self, camera: Camera) -> np.ndarray:
-        """[H, W, D] rendered features (cached per view: every query of an evaluation reuses them)."""
+        """[H, W, D] rendered features (cached up to ``map_budget_mb``, least recently used dropped)."""
         from .contrastive import render_feature_map
 
-        if camera.name not in self._maps:
-            self._maps[camera.name] = render_feature_map(self.model, camera, self.features, self.params.near)
-        return self._maps[camera.name]
+        fmap = self._shared.maps.get(camera.name)
+        if fmap is None:
+            fmap = render_feature_map(self.model, camera, self.features, self.params.near)
+            self._shared.maps.put(camera.name, fmap)
+        return fmap
 
+    def view_weights(self, camera: Camera):
+        """The full-view :class:`~trace3d.render.pixel_weights.PixelWeights` of one view (not kept)."""
+        from ..render.pixel_weights import pixel_weights
+
+        with torch.no_grad():
+            return pixel_weights(self.model.splats(), camera, near=self.params.near)
+
+    def _training_views(self):
+        """(camera, pixel weights) of each training view in order, computed one at a time (the caller
+        drops a view's weights before asking for the next: then one view's are alive)."""
+        from ..render.pixel_weights import pixel_weights
+
+        splats = self.model.splats()
+        for c in self.train_cameras:
+            with torch.no_grad():
+                yield c, pixel_weights(splats, c, near=self.params.near)
+
+    # --- the all-views-at-once path (the twin of the pass; it holds every training view) ----------
     def train_masks(self, q: QueryPoints) -> list[np.ndarray]:
         """[H, W] bool masks of ``q`` at every training view: :meth:`QueryPoints.mask` of each view's
-        feature map (the twin), in one kernel call over the training views' maps stacked once (their
-        cached maps become views into the stack); per view when the sizes differ or the kernel does
-        not apply."""
+        feature map (the twin), in one kernel call over the training views' maps stacked (every
+        training view's map at once: for tests and twins); per view when the sizes differ or the
+        kernel does not apply."""
         cams = self.train_cameras
         if not cams or q.features.shape[0] == 0 or q.thresholds.dtype != np.float32 \
                 or len({(c.height, c.width) for c in cams}) != 1:
             return [q.mask(self.feature_map(c)) for c in cams]
-        if self._stack[0] is None:
-            first = self.feature_map(cams[0])
-            if not _kernel_applies(first, q.features):
-                return [q.mask(self.feature_map(c)) for c in cams]
-            stack = np.empty((len(cams),) + first.shape, np.float32)
-            for i, c in enumerate(cams):
-                stack[i] = self.feature_map(c)
-                self._maps[c.name] = stack[i]
-            self._stack[0] = stack
-        stack = self._stack[0]
-        if not _kernel_applies(stack[0], q.features):
+        first = self.feature_map(cams[0])
+        if not _kernel_applies(first, q.features):
             return [q.mask(self.feature_map(c)) for c in cams]
+        stack = np.empty((len(cams),) + first.shape, np.float32)
+        for i, c in enumerate(cams):
+            stack[i] = self.feature_map(c)
         out = np.empty(stack.shape[:3], np.bool_)
         _query_mask_stack(stack, q.features, q.thresholds, out)
         return list(out)
 
     def train_weights(self) -> list:
-        """The full-view pixel weights of every training view, computed once (about 4 MB per 160x120 view)."""
-        from ..render.pixel_weights import pixel_weights
+        """The full-view pixel weights of every training view at once (not kept: for tests and twins)."""
+        return [w for _, w in self._training_views()]
 
-        if self._weights is None:
-            splats = self.model.splats()
-            with torch.no_grad():
-                self._weights = [pixel_weights(splats, c, near=self.params.near) for c in self.train_cameras]
-            self._total = summed_weights(self._weights)
-        return self._weights
+    def object_gaussians_at_once(self, query: ObjectQuery) -> np.ndarray:
+        """:meth:`object_gaussians` from every training view's pixel weights and masks held at once (the
+        code before the pass; the twin)."""
+        return trace_object_weights(self.train_weights(), self.train_masks(self.query_points(query)),
+                                    self.params.gaussian_share)
 
+    # --- the pass -------------------------------------------------------------------------------------
     def visibility(self) -> np.ndarray:
         """[N] float64: every Gaussian's blending weight summed over all training pixels (computed once).
 
-        From the cached :meth:`train_weights` when a query has computed them; otherwise view by view,
-        each view's pixel weights dropped after its sum (the same sums in the same order as
-        :func:`summed_weights`, so the same bits): a caller that needs the visibility only (the
-        ``segment`` step, the panoptic score of a scene without queries) never holds every view's
-        [pixels x Gaussians] weights at once (about 90 MB per 640x480 view, docs/scale.md)."""
-        if self._total is None:
-            from ..render.pixel_weights import pixel_weights
+        From the pass when one has run; otherwise view by view, each view's pixel weights dropped after
+        its sum (the same sums in the same order as :func:`summed_weights`, so the same bits)."""
+        if self._shared.total is None:
+            self._shared.total = summed_weights((w for _, w in self._training_views()), len(self.model))
+        return self._shared.total
 
-            splats = self.model.splats()
-            with torch.no_grad():
-                self._total = summed_weights((pixel_weights(splats, c, near=self.params.near)
-                                              for c in self.train_cameras), len(self.model))
-        return self._total
+    def _trace_key(self, q: QueryPoints) -> bytes:
+        return np.float64(self.params.gaussian_share).tobytes() + _points_key(q)
+
+    def plan(self, query: ObjectQuery, cameras: Sequence[Camera] = ()) -> None:
+        """Ask for the object Gaussians of ``query`` and its masks at ``cameras`` from the next
+        :meth:`run_plan` (its query points are found now, on the reference view)."""
+        q = self.query_points(query)
+        sh = self._shared
+        tkey = self._trace_key(q)
+        if tkey not in sh.by_points:
+            sh.pending_traces[tkey] = (q, self.params.gaussian_share)
+        pkey = _points_key(q)
+        for c in cameras:
+            if (pkey, c.name) not in sh.masks:
+                sh.pending_masks.setdefault(c.name, {})[pkey] = q
+                sh.pending_cameras[c.name] = c
+
+    def run_plan(self) -> None:
+        """One pass over the training views (in order), then over the other planned cameras: per view,
+        its feature map and (training views) its pixel weights, every planned object's mask there,
+        added to the object's accumulator, and the masks asked for there stored (bit-packed); then the
+        traced Gaussians. Holds one view's pixel weights and feature map at a time (and the maps that
+        fit the cache's budget)."""
+        sh = self._shared
+        traces = list(sh.pending_traces.items())
+        n = len(self.model)
+        if traces or sh.total is None:
+            sums = [np.zeros(n, np.float64) for _ in traces]
+            total = np.zeros(n, np.float64)
+            view = np.zeros(n, np.float64)
+            touched = np.zeros(n, np.bool_)
+            order = np.empty(n, np.int64)
+            trace_points = [q for _, (q, _) in traces]
+            trace_keys = [_points_key(q) for q in trace_points]
+            for cam, w in self._training_views():
+                _add_view_total(total, w)
+                wanted = sh.pending_masks.pop(cam.name, {})
+                sh.pending_cameras.pop(cam.name, None)
+                # one mask per distinct query-point content at this view: the traced objects', then the
+                # other masks asked for here
+                keys = list(dict.fromkeys(trace_keys + list(wanted)))
+                by_key = {**dict(zip(trace_keys, trace_points)), **wanted}
+                masks = dict(zip(keys, self._masks_at(cam, [by_key[k] for k in keys])))
+                for fg, key in zip(sums, trace_keys):
+                    flat = np.ascontiguousarray(masks[key].ravel())
+                    _add_masked_rows(flat, w.pixels, w.indptr, w.indices, w.weights, fg, view, touched, order)
+                for key in wanted:
+                    sh.masks[(key, cam.name)] = (np.packbits(masks[key]), masks[key].shape)
+                del masks, w
+            if sh.total is None:
+                sh.total = total
+            del total
+            for (key, (_, share)), fg in zip(traces, sums):
+                frac = fg / np.maximum(sh.total, 1e-12)
+                sh.by_points[key] = (sh.total > 0) & (frac > share)
+            del sums
+        sh.pending_traces.clear()
+        # the masks asked for at the other views (and at the training views when no pass was needed)
+        for name in list(sh.pending_masks):
+            wanted = sh.pending_masks.pop(name)
+            cam = sh.pending_cameras.pop(name)
+            keys = list(wanted)
+            for key, m in zip(keys, self._masks_at(cam, [wanted[k] for k in keys])):
+                sh.masks[(key, name)] = (np.packbits(m), m.shape)
+
+    def _masks_at(self, camera: Camera, points: Sequence[QueryPoints]) -> list[np.ndarray]:
+        """[H, W] bool masks of each of ``points`` at one view (:meth:`QueryPoints.mask`, the twin; one
+        kernel call for all of them when it applies)."""
+        if not points:
+            return []
+        fmap = self.feature_map(camera)
+        use = [q for q in points if q.features.shape[0] > 0]
+        if use and all(q.features.dtype == np.float32 and q.thresholds.dtype == np.float32 for q in points) \
+                and all(_kernel_applies(fmap, q.features) for q in use):
+            feats = np.ascontiguousarray(np.concatenate([q.features.reshape(-1, fmap.shape[2]) for q in points]))
+            thresholds = np.ascontiguousarray(np.concatenate([q.thresholds for q in points]))
+            starts = np.zeros(len(points) + 1, np.int64)
+            starts[1:] = np.cumsum([q.features.shape[0] for q in points])
+            out = np.empty((len(points),) + fmap.shape[:2], np.bool_)
+            _query_mask_objects(fmap, feats, thresholds, starts, out)
+            return list(out)
+        return [q.mask(fmap) for q in points]
 
     def _reference_camera(self, query: ObjectQuery) -> Camera:
         for c in self.train_cameras:
@@ -557,21 +722,30 @@ class FeatureLifted:
         return self._queries[key]
 
     def object_masks(self, query: ObjectQuery, cameras: Sequence[Camera]) -> list[np.ndarray]:
+        """The masks of ``query`` at ``cameras``: those a pass stored (:meth:`plan`), else from each
+        view's feature map (the same bits)."""
         q = self.query_points(query)
-        return [q.mask(self.feature_map(c)) for c in cameras]
+        pkey = _points_key(q)
+        out = []
+        for c in cameras:
+            stored = self._shared.masks.get((pkey, c.name))
+            if stored is None:
+                out.append(q.mask(self.feature_map(c)))
+            else:
+                bits, shape = stored
+                out.append(np.unpackbits(bits, count=shape[0] * shape[1]).reshape(shape).astype(bool))
+        return out
 
     def object_gaussians(self, query: ObjectQuery) -> np.ndarray:
         key = query_key(query)
         if key not in self._gaussians:
             q = self.query_points(query)
             # the traced Gaussians are a function of the query features and thresholds (and the share)
-            content = b"".join((np.float64(self.params.gaussian_share).tobytes(), str(q.features.shape).encode(),
-                                q.features.tobytes(), q.thresholds.tobytes()))
-            if content not in self._by_points:
-                masks = self.train_masks(q)
-                self._by_points[content] = trace_object_weights(self.train_weights(), masks,
-                                                                self.params.gaussian_share, self._total)
-            self._gaussians[key] = self._by_points[content]
+            tkey = self._trace_key(q)
+            if tkey not in self._shared.by_points:
+                self.plan(query)
+                self.run_plan()
+            self._gaussians[key] = self._shared.by_points[tkey]
         return self._gaussians[key]
 
 
