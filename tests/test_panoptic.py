@@ -227,21 +227,10 @@ def test_bad_panoptic_parameters_are_refused(tiny_features, tmp_path):
 def test_single_point_shares_traced_objects_only_when_the_query_points_agree(tiny_features):
     """``with_query`` siblings share the traced object Gaussians by query-point content: each answer
     equals that of a fresh lifted scene that shares nothing (the twin)."""
-    from trace3d.evaluation.groundtruth import GroundTruth
-    from trace3d.evaluation.params import EvaluateParams
     from trace3d.lifting.query import FeatureLifted, QueryParams
-    from trace3d.scene import Scene
-    from trace3d.tracing.git import load_fitted
 
-    root = tiny_features
-    scene = Scene.read(root / "scene")
-    model, cameras = load_fitted(scene, None, root / "gaussians")
-    train = [c for c in cameras if c.split == "train"]
-    features = np.load(root / "lift" / "features.npy")
-    gt = GroundTruth(scene, cameras, EvaluateParams(**{k: v for k, v in QUICK.items() if not k.startswith("panoptic")}))
-    queries = [q for q in (gt.query(oid) for oid in gt.object_ids) if q is not None]
-    assert queries
-    lifted = FeatureLifted(model, features, train)
+    lifted, queries, _, train = _lifted_and_queries(tiny_features)
+    model, features = lifted.model, lifted.features
     many = [lifted.object_gaussians(q).copy() for q in queries]
     one = lifted.with_query(max_queries=1)
     shared = [one.object_gaussians(q) for q in queries]
