@@ -342,6 +342,10 @@ def main(argv: list[str] | None = None) -> int:
         count = sum(len(s) for m in signatures.values() for s in m.values())
         print(f"recorded {count} signatures of {sum(len(m) for m in signatures.values())} kernels into {MANIFEST}")
         return 0
+    where = os.environ.get("NUMBA_CACHE_DIR") or "numba's __pycache__ folders"
+    if not args.json:
+        print(f"numba kernels: compiling what {where} lacks over {args.jobs} process(es) (an empty cache: "
+              "about 215 s of CPU in all; a filled one: seconds)", flush=True)
     start = time.monotonic()
     report = warm(args.jobs)
     wall = time.monotonic() - start
@@ -350,10 +354,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps({**report, "wall_s": wall, "cache": os.environ.get("NUMBA_CACHE_DIR")}))
     else:
-        where = os.environ.get("NUMBA_CACHE_DIR") or "numba's __pycache__ folders"
         print(f"numba kernels: {len(states)} specializations, {states.count('compiled')} compiled, "
-              f"{states.count('loaded')} already cached, in {where} ({report['processes']} process(es), "
-              f"{wall:.0f} s)")
+              f"{states.count('loaded')} already cached ({report['processes']} process(es), {wall:.0f} s)")
     for module, name, text, state in failed:
         print(f"trace3d warm: {module}.{name}{text}: {state} (a stale signature in {MANIFEST.name}: "
               f"`python -m trace3d.warm --record` after a full test run)", file=sys.stderr)
