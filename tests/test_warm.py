@@ -58,7 +58,7 @@ def test_units_keep_a_module_with_the_kernels_it_calls(tmp_path):
     groups = warm.units(manifest, package)
     assert sorted(sorted(g) for g in groups) == [["trace3d.alone"], ["trace3d.caller", "trace3d.sub.callee"],
                                                  ["trace3d.plain"]]
-    assert sorted(groups[0]) == ["trace3d.caller", "trace3d.sub.callee"]  # the most signatures first
+    assert sorted(groups[0]) == ["trace3d.caller", "trace3d.sub.callee"]  # the largest first
     # the package's own: a partition of the manifest's modules
     real = warm.units(warm.read_manifest())
     flat = [m for g in real for m in g]

@@ -3,8 +3,9 @@
 ``python -m trace3d.warm [--jobs N]`` compiles (or, where the cache has it already, loads) every
 specialization the pipeline and the tests use of every ``cache=True`` numba function of ``trace3d``,
 into ``NUMBA_CACHE_DIR`` (in its subfolder for this code, :func:`trace3d.codehash.key_numba_cache`, as
-every entry point does). A cold cache costs about 215 s of one core: numba compiles a kernel on its first
-call, in whichever process first calls it, one kernel after another. Warming first spreads that over
+every entry point does). A cold cache costs 4-5 min of CPU (measured 2026-11-28 on the 2-core machine
+beside another benchmark: 324 s over two processes): numba compiles a kernel on its first call, in
+whichever process first calls it, one kernel after another. Warming first spreads that over
 ``N`` processes (the kernel modules go to whichever process is free, largest first), and afterwards no
 step, job or test compiles anything: ``make test`` and ``make reproduce`` run it before pytest and
 Snakemake, and on a cluster one run before submitting the jobs saves every job its compile
@@ -86,7 +87,7 @@ def _imported_names(module: str, package: Path = PACKAGE) -> dict[str, set[str]]
 def units(manifest: dict[str, dict[str, list[str]]], package: Path = PACKAGE) -> list[list[str]]:
     """The manifest's modules grouped so that no two processes compile one function: a module that
     imports a name with recorded signatures from another module of the manifest joins its group.
-    Largest group first (by recorded signatures, then by source size of the modules)."""
+    Largest group first (lines of its recorded functions times their specializations)."""
     from .codehash import module_file
 
     parent = {m: m for m in manifest}
@@ -105,11 +106,30 @@ def units(manifest: dict[str, dict[str, list[str]]], package: Path = PACKAGE) ->
     for module in sorted(manifest):
         groups.setdefault(find(module), []).append(module)
 
-    def weight(group: list[str]) -> tuple[int, int]:
-        return (sum(len(s) for m in group for s in manifest[m].values()),
-                sum(module_file(m, package).stat().st_size for m in group))
+    def weight(group: list[str]) -> int:
+        return sum(_source_lines(m, package).get(name, 1) * len(sigs)
+                   for m in group for name, sigs in manifest[m].items())
 
     return sorted(groups.values(), key=weight, reverse=True)
+
+
+def _source_lines(module: str, package: Path = PACKAGE) -> dict[str, int]:
+    """Lines of each function of ``module`` by its module-level name (``f = njit(...)(g)`` counts ``g``'s):
+    what :func:`units` orders by, a kernel's lines times its specializations standing for its compile
+    time (on the 2-core machine, 2026-11-28: the backward kernel's module 87 s of CPU for 241 such
+    lines, the ray caster's 12 s for 390, so the order is rough; the processes take the next unit as
+    they finish one)."""
+    from .codehash import module_file
+
+    tree = ast.parse(module_file(module, package).read_text())
+    lines = {n.name: n.end_lineno - n.lineno + 1 for n in tree.body if isinstance(n, ast.FunctionDef)}
+    for node in tree.body:
+        if (isinstance(node, ast.Assign) and isinstance(node.value, ast.Call) and node.value.args
+                and isinstance(node.value.args[0], ast.Name) and node.value.args[0].id in lines):
+            for target in node.targets:
+                if isinstance(target, ast.Name):
+                    lines[target.id] = lines[node.value.args[0].id]
+    return lines
 
 
 # ----------------------------------------------------------------------------------------------
@@ -178,7 +198,8 @@ _COMPILED: list | None = None
 def warm_modules(modules: list[str], manifest: dict[str, dict[str, list[str]]]) -> dict:
     """Compile or load every recorded signature of ``modules``' cached dispatchers in this process.
     Returns what happened: ``kernels`` [module, name, signature, "compiled" | "loaded" | "failed: ..."],
-    ``foreign`` [module, name] compiled here that belong to a module not in ``modules``, the CPU seconds
+    ``foreign`` [module, name] of the package's cached functions compiled here that belong to a module not
+    in ``modules`` (numba compiles its own library functions in every process; those have no file), the CPU seconds
     of each module (importing it included) and of the whole call (``module_cpu_s``, ``cpu_s``)."""
     global _COMPILED
     if _COMPILED is None:
@@ -207,9 +228,12 @@ def warm_modules(modules: list[str], manifest: dict[str, dict[str, list[str]]]) 
     compiled = {(id(d), a) for d, a in _COMPILED[start:]}
     rows = [row if len(row) == 4 else [*row[:3], "compiled" if (id(row[3]), row[4]) in compiled else "loaded"]
             for row in rows]
-    for dispatcher, _ in _COMPILED[start:]:
+    from numba.core.caching import NullCache
+
+    for dispatcher, _ in _COMPILED[start:]:  # the package's cached functions only (numba's own have no file)
         owner = dispatcher.py_func.__module__
-        if owner not in modules and [owner, dispatcher.py_func.__name__] not in foreign:
+        if (owner.startswith(ROOT + ".") and owner not in modules and not isinstance(dispatcher._cache, NullCache)
+                and [owner, dispatcher.py_func.__name__] not in foreign):
             foreign.append([owner, dispatcher.py_func.__name__])
     return {"kernels": rows, "foreign": foreign, "module_cpu_s": seconds, "cpu_s": time.process_time() - cpu,
             "pid": os.getpid()}
@@ -345,7 +369,7 @@ def main(argv: list[str] | None = None) -> int:
     where = os.environ.get("NUMBA_CACHE_DIR") or "numba's __pycache__ folders"
     if not args.json:
         print(f"numba kernels: compiling what {where} lacks over {args.jobs} process(es) (an empty cache: "
-              "about 215 s of CPU in all; a filled one: seconds)", flush=True)
+              "4-5 min of CPU in all; a filled one: seconds)", flush=True)
     start = time.monotonic()
     report = warm(args.jobs)
     wall = time.monotonic() - start
