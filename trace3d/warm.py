@@ -88,8 +88,6 @@ def units(manifest: dict[str, dict[str, list[str]]], package: Path = PACKAGE) ->
     """The manifest's modules grouped so that no two processes compile one function: a module that
     imports a name with recorded signatures from another module of the manifest joins its group.
     Largest group first (lines of its recorded functions times their specializations)."""
-    from .codehash import module_file
-
     parent = {m: m for m in manifest}
 
     def find(m: str) -> str:
@@ -220,7 +218,8 @@ def warm_modules(modules: list[str], manifest: dict[str, dict[str, list[str]]]) 
                 try:
                     dispatcher.compile(sig)
                 except Exception as exc:  # noqa: BLE001 - a stale signature is reported, not fatal
-                    rows.append([module, name, text, f"failed: {type(exc).__name__}: {' '.join(str(exc).split())[:300]}"])
+                    why = " ".join(str(exc).split())[:300]
+                    rows.append([module, name, text, f"failed: {type(exc).__name__}: {why}"])
                     continue
                 rows.append([module, name, text, dispatcher, sig])
         seconds[module] = time.process_time() - module_cpu
@@ -356,7 +355,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.record:
         cache = Path(args.record)
         if not cache.is_dir():
-            print(f"trace3d warm: error: {cache} is not a folder (a keyed subfolder of NUMBA_CACHE_DIR)", file=sys.stderr)
+            print(f"trace3d warm: error: {cache} is not a folder (a keyed subfolder of NUMBA_CACHE_DIR)",
+                  file=sys.stderr)
             return 2
         signatures = record(cache)
         if not signatures:
