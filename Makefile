@@ -6,7 +6,8 @@ BIN    := $(VENV)/bin
 CORES  ?= 2
 STAMP  := $(VENV)/.installed
 
-# Numba's compile cache lives inside the checkout, so only the first run in a clone compiles.
+# Numba's compile cache lives inside the checkout, so only the first run in a clone compiles (and
+# `python -m trace3d.warm` does that first run over $(CORES) processes).
 export NUMBA_CACHE_DIR := $(CURDIR)/.numba_cache
 export OMP_WAIT_POLICY := PASSIVE
 export PATH := $(CURDIR)/$(BIN):$(PATH)
@@ -24,11 +25,16 @@ $(STAMP): requirements.txt pyproject.toml
 
 # The HTML report (tables, plots, captions) is written after the run, from what the run produced.
 reproduce: $(STAMP)
+	$(BIN)/python -m trace3d.warm --jobs $(CORES)
 	$(BIN)/snakemake --cores $(CORES) --show-failed-logs reproduce
 	$(BIN)/snakemake --cores 1 reproduce --report results/report.html
 
+# The kernels are compiled first, over $(CORES) processes (trace3d/warm.py), so that no test compiles one;
+# then the suite runs on $(CORES) pytest-xdist workers, the whole-DAG runs taking turns on one of them
+# (their xdist_group; tests/conftest.py).
 test: $(STAMP)
-	$(BIN)/python -m pytest -q tests
+	$(BIN)/python -m trace3d.warm --jobs $(CORES)
+	$(BIN)/python -m pytest -q -n $(CORES) --dist loadgroup tests
 
 lint: $(STAMP)
 	$(BIN)/snakemake --lint

@@ -2,7 +2,16 @@
 trace3d/__init__.py): sleeping OpenMP waits (torch's idle workers otherwise spin and steal the cores
 numba's kernels need) and numba's compile cache in the checkout, so that only the first run in a
 clone compiles.  Both must be set before torch and numba are imported, which happens when pytest
-imports the test modules, after this file.  An explicit value in the environment is respected."""
+imports the test modules, after this file.  An explicit value in the environment is respected.
+
+`make test` runs the suite on two pytest-xdist workers (``-n 2 --dist loadgroup``): each worker is a
+process of its own that runs this file, with its own temporary folders (``tmp_path``); they share the
+numba cache, which ``python -m trace3d.warm`` fills before pytest starts, so that the workers only
+load kernels (two processes that save different specializations of one kernel at once can leave
+numba's index pointing one of them at the other's machine code: trace3d/warm.py).  The tests that run a whole DAG through Snakemake (each with
+``--cores 2``, as a user's run; the SLURM test's cluster has 2 CPUs) are in the ``xdist_group``
+"whole_dag": one worker runs them one after another while the other runs the rest, so no two of them
+compete for the cores and run into their time limits."""
 
 import atexit
 import os
@@ -69,3 +78,13 @@ def single_numba_thread():
     numba.set_num_threads(1)
     yield
     numba.set_num_threads(threads)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Under pytest-xdist (``make test``), the tests of an ``xdist_group`` (the whole-DAG runs) go first:
+    the scheduler hands a group to one worker when it reaches the group's first test, so the longest
+    unit starts at once while the other worker takes the short tests, instead of starting halfway
+    through the run and finishing alone.  The order is the same in every worker (xdist checks that);
+    without xdist nothing changes."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        items.sort(key=lambda item: item.get_closest_marker("xdist_group") is None)

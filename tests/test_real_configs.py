@@ -42,6 +42,7 @@ def derived_config(name: str, data_root: Path, scenes: list[str], **defaults) ->
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("whole_dag")  # whole-DAG runs take turns on one worker (tests/conftest.py)
 def test_replica_config_runs_the_whole_dag(tmp_path):
     data = tmp_path / "Replica"
     write_replica_sequence(data / "room_0" / "Sequence_1", num_frames=12)
@@ -87,6 +88,7 @@ def test_missing_scene_folder_is_named(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("whole_dag")  # whole-DAG runs take turns on one worker (tests/conftest.py)
 def test_nvos_config_runs_the_whole_dag(tmp_path):
     """NVOS as shipped asks SAM for masks; here the fixture's masks come as files (the sphere and the
     wall per view), the rest of the config unchanged: import, poses from poses_bounds.npy, fit, trace,

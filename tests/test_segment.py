@@ -47,6 +47,7 @@ def room(tmp_path_factory):
 
 @pytest.mark.slow
 @pytest.mark.skipif(SNAKEMAKE is None, reason="snakemake is not installed")
+@pytest.mark.xdist_group("whole_dag")  # whole-DAG runs take turns on one worker (tests/conftest.py)
 def test_transforms_captures_run_the_whole_dag_to_object_plys(room, tmp_path):
     """An instant-ngp capture (the convention whose world is moved: scaled, rotated, offset) through the
     whole DAG: it ends in object PLYs that read back, the contact sheet goes into the report, and no

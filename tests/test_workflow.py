@@ -72,6 +72,7 @@ TINY_SYNTHETIC = {"width": 48, "height": 36, "num_views": 6, "test_every": 3, "n
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("whole_dag")  # whole-DAG runs take turns on one worker (tests/conftest.py)
 def test_end_to_end_tiny(tmp_path):
     config = {
         "defaults": {
