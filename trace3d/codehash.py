@@ -175,10 +175,8 @@ def step_hash(command: str, package: Path = PACKAGE) -> str:
 KERNEL_DEFINITION = re.compile(r"@(?:numba\.)?(?:njit|jit|vectorize|guvectorize|stencil)\b|\bnumba\.(?:njit|jit)\(")
 
 
-def kernel_modules(package: Path = PACKAGE) -> list[str]:
-    """The modules whose source uses numba, with everything they import: numba's cache stamps a compiled
-    kernel with its own file only, so a change to a helper or constant it takes from another module would
-    otherwise leave the old machine code in the cache."""
+def kernel_definers(package: Path = PACKAGE) -> list[str]:
+    """The modules whose own source defines a numba kernel (:data:`KERNEL_DEFINITION`), sorted."""
     users = []
     for path in sorted(package.rglob("*.py")):
         text = path.read_text(encoding="utf-8")
@@ -186,7 +184,14 @@ def kernel_modules(package: Path = PACKAGE) -> list[str]:
             rel = path.relative_to(package).with_suffix("")
             parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
             users.append(".".join((ROOT, *parts)))
-    return closure(tuple(users), package)
+    return users
+
+
+def kernel_modules(package: Path = PACKAGE) -> list[str]:
+    """The modules that define numba kernels (:func:`kernel_definers`), with everything they import:
+    numba's cache stamps a compiled kernel with its own file only, so a change to a helper or constant it
+    takes from another module would otherwise leave the old machine code in the cache."""
+    return closure(tuple(kernel_definers(package)), package)
 
 
 def kernel_cache_key(package: Path = PACKAGE, memo: Path | None = None) -> str:

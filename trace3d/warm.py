@@ -42,6 +42,8 @@ import sys
 import time
 from pathlib import Path
 
+from .codehash import kernel_definers
+
 PACKAGE = Path(__file__).resolve().parent
 ROOT = "trace3d"
 MANIFEST = PACKAGE / "kernel_signatures.json"
@@ -50,21 +52,6 @@ MANIFEST = PACKAGE / "kernel_signatures.json"
 # ----------------------------------------------------------------------------------------------
 # which modules and functions (no numba import needed)
 # ----------------------------------------------------------------------------------------------
-
-def kernel_definers(package: Path = PACKAGE) -> list[str]:
-    """The modules whose own source defines a numba kernel (the same test as the cache key's,
-    :data:`trace3d.codehash.KERNEL_DEFINITION`), sorted."""
-    from .codehash import KERNEL_DEFINITION
-
-    out = []
-    for path in sorted(package.rglob("*.py")):
-        text = path.read_text(encoding="utf-8")
-        if "numba" in text and KERNEL_DEFINITION.search(text):
-            rel = path.relative_to(package).with_suffix("")
-            parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
-            out.append(".".join((ROOT, *parts)))
-    return out
-
 
 def read_manifest(path: Path = MANIFEST) -> dict[str, dict[str, list[str]]]:
     """module -> function (its module-level name) -> the recorded signatures (numba type reprs)."""
