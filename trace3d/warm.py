@@ -42,10 +42,8 @@ import sys
 import time
 from pathlib import Path
 
-from .codehash import kernel_definers
+from .codehash import PACKAGE, ROOT, kernel_definers
 
-PACKAGE = Path(__file__).resolve().parent
-ROOT = "trace3d"
 MANIFEST = PACKAGE / "kernel_signatures.json"
 
 
@@ -305,17 +303,6 @@ def record(cache: Path, package: Path = PACKAGE) -> dict[str, dict[str, list[str
 # entry point
 # ----------------------------------------------------------------------------------------------
 
-def _environment() -> None:
-    """The entry point's process settings (as :func:`trace3d.cli._entry_point_environment`): before numba
-    is imported, the CPU target and the keyed cache folder."""
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    from .codehash import key_numba_cache
-    from .cputarget import set_wide_vectors
-
-    set_wide_vectors()
-    key_numba_cache()
-
-
 def _jobs(text: str) -> int:
     try:
         value = int(text)
@@ -338,7 +325,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="instead: write the signatures that CACHE (a keyed folder under NUMBA_CACHE_DIR that "
                              "a full `make test` filled) holds into trace3d/kernel_signatures.json")
     args = parser.parse_args(argv)
-    _environment()
+    from .cli import _entry_point_environment
+
+    _entry_point_environment()  # before numba is imported: the CPU target and the keyed cache folder
     if args.record:
         cache = Path(args.record)
         if not cache.is_dir():
