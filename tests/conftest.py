@@ -11,7 +11,10 @@ load kernels (two processes that save different specializations of one kernel at
 numba's index pointing one of them at the other's machine code: trace3d/warm.py).  The tests that run a whole DAG through Snakemake (each with
 ``--cores 2``, as a user's run; the SLURM test's cluster has 2 CPUs) are in the ``xdist_group``
 "whole_dag": one worker runs them one after another while the other runs the rest, so no two of them
-compete for the cores and run into their time limits."""
+compete for the cores and run into their time limits.  The SLURM test (group "slurm") runs the same
+room through the cluster, whose jobs run on the node's 2 CPUs while the test's process mostly waits on
+the executor's status polls (2-22 s apart): it starts on the other worker, beside the whole-DAG group,
+instead of adding its waits to that worker's queue."""
 
 import atexit
 import os
@@ -87,4 +90,15 @@ def pytest_collection_modifyitems(config, items):
     through the run and finishing alone.  The order is the same in every worker (xdist checks that);
     without xdist nothing changes."""
     if os.environ.get("PYTEST_XDIST_WORKER"):
-        items.sort(key=lambda item: item.get_closest_marker("xdist_group") is None)
+        items.sort(key=_group_rank)
+
+
+GROUP_ORDER = ("whole_dag", "slurm")  # the scheduler's first unit goes to the first worker, the second to the other
+
+
+def _group_rank(item) -> int:
+    marker = item.get_closest_marker("xdist_group")
+    if marker is None:
+        return len(GROUP_ORDER) + 1
+    name = marker.args[0] if marker.args else marker.kwargs.get("name")
+    return GROUP_ORDER.index(name) if name in GROUP_ORDER else len(GROUP_ORDER)

@@ -153,7 +153,7 @@ def _jobs_of_run(run_id: str) -> list[dict]:
     return [dict(zip(keys, line.split("|"))) for line in out.splitlines() if line.strip()]
 
 
-@pytest.mark.xdist_group("whole_dag")  # whole-DAG runs take turns on one worker (tests/conftest.py)
+@pytest.mark.xdist_group("slurm")  # beside the whole-DAG group, on the other worker (tests/conftest.py)
 def test_slurm_run_equals_local_run(tmp_path):
     assert importlib.util.find_spec("snakemake_executor_plugin_slurm") is not None, (
         "SLURM is up but snakemake-executor-plugin-slurm is not installed: pip install -r requirements.txt")

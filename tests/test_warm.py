@@ -104,3 +104,14 @@ def test_bad_arguments_are_refused(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     assert warm.main(["--record", str(tmp_path / "empty")]) == 2
     assert "holds no compiled kernel of this code" in capsys.readouterr().err
+
+
+def test_a_signature_that_does_not_read_back_is_one_sentence(tmp_path, capsys, monkeypatch):
+    """record() refuses a signature parse_signature cannot rebuild; --record says so in one line, exit 2,
+    and leaves the manifest as it was."""
+    before = warm.MANIFEST.read_bytes()
+    monkeypatch.setattr(warm, "parse_signature", lambda text: ("not", "the same"))
+    assert warm.main(["--record", os.environ["NUMBA_CACHE_DIR"]]) == 2  # the suite's cache, as above
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "does not read back" in err[0] and "teach parse_signature" in err[0], err
+    assert warm.MANIFEST.read_bytes() == before

@@ -334,7 +334,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"trace3d warm: error: {cache} is not a folder (a keyed subfolder of NUMBA_CACHE_DIR)",
                   file=sys.stderr)
             return 2
-        signatures = record(cache)
+        try:
+            signatures = record(cache)
+        except ValueError as err:  # a signature numba wrote that parse_signature cannot rebuild
+            print(f"trace3d warm: error: {err}; teach parse_signature in {Path(__file__).name} its type "
+                  "before recording", file=sys.stderr)
+            return 2
         if not signatures:
             print(f"trace3d warm: error: {cache} holds no compiled kernel of this code", file=sys.stderr)
             return 2
