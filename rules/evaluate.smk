@@ -22,7 +22,7 @@ rule evaluate:
         objects=lambda w, output: f"--objects {output.objects}",
         label=lambda w: shlex.quote(json.dumps(run_label(w.variant), sort_keys=True)),
         code=step_code("evaluate"),
-    threads: 2
+    threads: 1  # same bits at any thread count; two 1-thread jobs use 2 cores better (docs/performance.md, 'Rule threads')
     resources:
         mem_mb=3000,
         runtime=30,

@@ -14,7 +14,7 @@ rule lift:
         p=lift_params,
         labels=lift_labels_arg,
         code=step_code("lift"),
-    threads: 2
+    threads: 1  # same bits at any thread count; two 1-thread jobs use 2 cores better (docs/performance.md, 'Rule threads')
     resources:
         mem_mb=4000,
         runtime=60,

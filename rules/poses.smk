@@ -11,7 +11,7 @@ rule poses:
     params:
         p=quoted_params("poses"),
         code=step_code("poses"),
-    threads: 2
+    threads: 1  # same bits at any thread count; two 1-thread jobs use 2 cores better (docs/performance.md, 'Rule threads')
     resources:
         mem_mb=2000,
         runtime=30,

@@ -9,7 +9,7 @@ rule scene:
     params:
         args=scene_kind_args,
         code=step_code("scene"),
-    threads: 2
+    threads: 1  # same bits at any thread count; two 1-thread jobs use 2 cores better (docs/performance.md, 'Rule threads')
     resources:
         mem_mb=1000,
         runtime=15,

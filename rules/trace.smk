@@ -13,7 +13,7 @@ rule trace:
     params:
         p=preset_params("trace"),
         code=step_code("trace"),
-    threads: 2
+    threads: 1  # same bits at any thread count; two 1-thread jobs use 2 cores better (docs/performance.md, 'Rule threads')
     resources:
         mem_mb=2000,
         runtime=20,
@@ -38,7 +38,7 @@ rule merge:
     params:
         p=preset_params("merge"),
         code=step_code("merge"),
-    threads: 2
+    threads: 1  # same bits at any thread count; two 1-thread jobs use 2 cores better (docs/performance.md, 'Rule threads')
     resources:
         mem_mb=2000,
         runtime=20,
@@ -78,7 +78,7 @@ rule refine:
         p=preset_params("refine"),
         labels=refine_labels_arg,
         code=step_code("refine"),
-    threads: 2
+    threads: 2  # the retraining's results differ at 1 thread (docs/performance.md, 'Rule threads')
     resources:
         mem_mb=4000,
         runtime=60,

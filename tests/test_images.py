@@ -232,7 +232,7 @@ def test_readme_config_example_dry_runs(tmp_path):
                          cwd=tmp_path, capture_output=True, text=True, env=env, timeout=120)
     assert out.returncode == 0, out.stdout + out.stderr
     assert f"scene images --source {tmp_path}/captures/plant" in out.stdout
-    assert '"max_side": 640' in out.stdout and "trace3d --threads 2 poses" in out.stdout
+    assert '"max_side": 640' in out.stdout and "trace3d --threads 1 poses" in out.stdout
 
 
 def test_tracing_table_plots_without_ground_truth(tmp_path):
