@@ -30,16 +30,16 @@ def _check_patch_maps(scene, git_dir: Path, patches_dir: Path) -> None:
     from ..scene import read_u16
     from ..tracing.git import GITStats
 
-    stats = GITStats.load(git_dir / "git.npz")
+    frames = GITStats.load_frames(git_dir / "git.npz")  # not the [G, V] table: run_merge reads what it needs
     known = {c.name: c for c in scene.cameras}
     any_patch = False
-    for frame in stats.frames:
+    for frame in frames:
         if frame not in known:
             raise Trace3DError(f"{git_dir / 'git.npz'}: traced view '{frame}' is not a view of the scene "
                                f"{scene.root}; rerun the trace step on this scene.")
         cam = known[frame]
         patch_map = read_u16(patches_dir / f"{frame}.png", "patch map", (cam.width, cam.height))
         any_patch = any_patch or bool(np.any(patch_map))
-    if stats.frames and not any_patch:
+    if frames and not any_patch:
         raise Trace3DError(f"{patches_dir}: no view has a patch (every patch map is empty), so there is nothing "
                            f"to merge; check the masks step's output.")

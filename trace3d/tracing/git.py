@@ -79,6 +79,78 @@ class GITStats:
                                    f"{out.visibility.shape}, {len(out.frames)} frames).")
         return out
 
+    @staticmethod
+    def load_frames(path: str | Path) -> list[str]:
+        """The traced views' names of a ``git.npz``, without reading its [N, L] arrays."""
+        path = Path(path)
+        if not path.is_file():
+            raise SceneFormatError(f"{path}: GIT statistics file is missing.")
+        try:
+            with np.load(path) as data:
+                return [str(f) for f in data["frames"]]
+        except (KeyError, ValueError, OSError) as exc:
+            raise SceneFormatError(f"{path}: not a GIT statistics file ({exc}).") from exc
+
+
+# Rows of the [N, L] table handled at once where a whole-table temporary is avoided.
+ROW_BLOCK_ENTRIES = 1 << 21
+
+
+@dataclass
+class GITVisible:
+    """The GIT table as the ``merge`` step reads it: the labels and the visible mask at one visibility
+    threshold, without ``prob`` (the merge never reads it) and ``visibility`` (read only through the
+    mask): 5 instead of 12 bytes per (Gaussian, view). It answers ``label``, ``frames``,
+    ``num_labels`` and :meth:`visible` as :class:`GITStats` does, for its own threshold only."""
+
+    label: np.ndarray  # [N, L] int32
+    mask: np.ndarray  # [N, L] bool: visibility > min_visibility and label >= 0
+    min_visibility: float
+    frames: list[str]
+    num_labels: np.ndarray  # [L] int64
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.label.shape[0])
+
+    @property
+    def num_views(self) -> int:
+        return int(self.label.shape[1])
+
+    def visible(self, min_visibility: float) -> np.ndarray:
+        """The mask (:meth:`GITStats.visible` at this table's threshold, the same array every call)."""
+        if min_visibility != self.min_visibility:
+            raise ValueError(f"GITVisible holds the mask at visibility > {self.min_visibility}, "
+                             f"not > {min_visibility}.")
+        return self.mask
+
+    @classmethod
+    def load(cls, path: str | Path, min_visibility: float) -> "GITVisible":
+        """Read ``git.npz``'s labels and its visible mask, :meth:`GITStats.visible` bit for bit; the
+        float arrays are read one at a time (visibility, dropped once compared, then the labels), so
+        at most 5 bytes per (Gaussian, view) are held while reading."""
+        path = Path(path)
+        if not path.is_file():
+            raise SceneFormatError(f"{path}: GIT statistics file is missing.")
+        try:
+            with np.load(path) as data:
+                frames = [str(f) for f in data["frames"]]
+                num_labels = data["num_labels"]
+                visibility = data["visibility"]
+                shape = visibility.shape
+                mask = visibility > min_visibility
+                del visibility
+                label = data["label"]
+        except (KeyError, ValueError, OSError) as exc:
+            raise SceneFormatError(f"{path}: not a GIT statistics file ({exc}).") from exc
+        if label.ndim != 2 or shape != label.shape or len(frames) != label.shape[1]:
+            raise SceneFormatError(f"{path}: GIT arrays disagree in shape ({label.shape}, {shape}, "
+                                   f"{len(frames)} frames).")
+        step = max(1, ROW_BLOCK_ENTRIES // max(1, label.shape[1]))
+        for lo in range(0, len(label), step):
+            mask[lo:lo + step] &= label[lo:lo + step] >= 0
+        return cls(label=label, mask=mask, min_visibility=min_visibility, frames=frames, num_labels=num_labels)
+
 
 @torch.no_grad()
 def trace_views(model: GaussianModel, cameras: Sequence[Camera], label_maps: Sequence[np.ndarray],

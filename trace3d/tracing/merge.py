@@ -52,7 +52,7 @@ from typing import Literal, Sequence
 import numpy as np
 from numba import njit, prange
 
-from .git import GITStats
+from .git import ROW_BLOCK_ENTRIES, GITStats, GITVisible
 
 log = logging.getLogger(__name__)
 
@@ -333,20 +333,19 @@ def source_histograms(labels: np.ndarray, visible: np.ndarray, source_view: int,
 
 
 @njit(cache=True)
-def _all_source_histograms(labels, indptr, indices, first, count, num_source, num_labels):
-    n, views = labels.shape
+def _all_source_histograms(indptr, indices, values, views, first, count, num_source, num_labels):
     hist = np.zeros((count, num_source, views, num_labels), np.int32)
-    for i in range(n):  # every pair of views that sees Gaussian i (serial: the blocks overlap in i)
+    for i in range(len(indptr) - 1):  # every pair of views that sees Gaussian i (serial: the blocks overlap in i)
         lo, hi = indptr[i], indptr[i + 1]
         for k0 in range(lo, hi):
             v0 = indices[k0]
             if v0 < first or v0 >= first + count:
                 continue
-            a = labels[i, v0]
+            a = values[k0]
             for k in range(lo, hi):
                 v = indices[k]
                 if v != v0:
-                    hist[v0 - first, a, v, labels[i, v]] += 1
+                    hist[v0 - first, a, v, values[k]] += 1
     return hist
 
 
@@ -354,25 +353,68 @@ def _all_source_histograms(labels, indptr, indices, first, count, num_source, nu
 HISTOGRAM_BLOCK = 1 << 26
 
 
-def all_source_histograms(labels: np.ndarray, visible: np.ndarray, num_source: int, num_labels: int):
-    """:func:`source_histograms` of every source view, yielded in order as [num_source, L, num_labels].
+def _narrowest(top: int) -> type:
+    """int16 when every value in [-1, top] fits it, else int32."""
+    return np.int16 if top <= np.iinfo(np.int16).max else np.int32
 
-    Each Gaussian contributes only over the views it is visible in (a per-Gaussian list), so the
-    cost is the number of (Gaussian, source view, view) co-visibilities, sum_i k_i^2 for a Gaussian
-    seen in k_i views, not N L^2. Source views come in blocks that bound the memory.
+
+def visible_lists(label_rows, visible: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per Gaussian, the views that see it with a label and its label there, as CSR lists.
+
+    Args:
+        label_rows: ``label_rows(lo, hi)`` -> [hi - lo, L] integer labels of Gaussians lo..hi-1
+            (negative: none), called twice per row block, so that no [N, L] temporary is made.
+        visible: [N, L] bool.
+    Returns:
+        indptr [N + 1] int64, indices [nnz] (views, ascending per Gaussian) and values [nnz] (labels):
+        the entries where ``visible & (label >= 0)``, row-major; int16 where the views (the labels)
+        fit it, else int32.
     """
-    seen = visible & (labels >= 0)
-    counts = seen.sum(axis=1)
-    indptr = np.zeros(len(labels) + 1, np.int64)
+    n, views = visible.shape
+    step = max(1, ROW_BLOCK_ENTRIES // max(1, views))
+    counts = np.zeros(n, np.int64)
+    top = -1
+    for lo in range(0, n, step):
+        lab = label_rows(lo, lo + step)
+        seen = visible[lo:lo + step] & (lab >= 0)
+        counts[lo:lo + step] = seen.sum(axis=1)
+        top = max(top, int(lab.max(initial=-1)))
+    indptr = np.zeros(n + 1, np.int64)
     np.cumsum(counts, out=indptr[1:])
-    indices = np.nonzero(seen)[1].astype(np.int64)  # row-major: sorted views per Gaussian
-    masked = np.ascontiguousarray(np.where(seen, labels, -1).astype(np.int32))
-    views = labels.shape[1]
+    del counts
+    indices = np.empty(int(indptr[-1]), _narrowest(views - 1))
+    values = np.empty(int(indptr[-1]), _narrowest(top))
+    for lo in range(0, n, step):
+        lab = label_rows(lo, lo + step)
+        seen = visible[lo:lo + step] & (lab >= 0)
+        a, b = indptr[lo], indptr[min(lo + step, n)]
+        indices[a:b] = np.nonzero(seen)[1]
+        values[a:b] = lab[seen]
+    return indptr, indices, values
+
+
+def _histograms_of_lists(lists, views: int, num_source: int, num_labels: int):
+    """:func:`all_source_histograms` from :func:`visible_lists`' CSR lists."""
+    indptr, indices, values = lists
     per_view = max(1, int(num_source) * views * int(num_labels))
     block = max(1, min(views, HISTOGRAM_BLOCK // per_view))
     for start in range(0, views, block):
         count = min(block, views - start)
-        yield from _all_source_histograms(masked, indptr, indices, start, count, int(num_source), int(num_labels))
+        yield from _all_source_histograms(indptr, indices, values, views, start, count, int(num_source),
+                                          int(num_labels))
+
+
+def all_source_histograms(labels: np.ndarray, visible: np.ndarray, num_source: int, num_labels: int):
+    """:func:`source_histograms` of every source view, yielded in order as [num_source, L, num_labels].
+
+    Each Gaussian contributes only over the views it is visible in (a per-Gaussian list,
+    :func:`visible_lists`), so the cost is the number of (Gaussian, source view, view)
+    co-visibilities, sum_i k_i^2 for a Gaussian seen in k_i views, not N L^2, and the memory beyond
+    ``labels`` and ``visible`` is the lists (4 or 8 bytes per visible entry). Source views come in
+    blocks that bound the memory.
+    """
+    lists = visible_lists(lambda lo, hi: labels[lo:hi], visible)
+    return _histograms_of_lists(lists, labels.shape[1], num_source, num_labels)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -448,11 +490,16 @@ def merge_view(stats: GITStats, view: int, num_patches: int, pairs: np.ndarray, 
                                                                      rule.min_view_share, rule.min_views))
         if len(pairs):
             rows_all = np.nonzero(source)[0]
-            lab = stats.label[rows_all]
-            masked = np.where(visible[rows_all] & (lab >= rule.first_label), lab, -1).astype(np.int32)
+            masked = stats.label[rows_all].astype(np.int32, copy=False)  # a copy (rows), masked in place
+            at_view = masked[:, view].copy()
+            no_vote = visible[rows_all]
+            no_vote &= masked >= rule.first_label
+            np.invert(no_vote, out=no_vote)
+            np.copyto(masked, -1, where=no_vote)
+            del no_vote
             masked[:, view] = -1
-            by_label = np.argsort(lab[:, view], kind="stable")
-            bounds = np.searchsorted(lab[by_label, view], np.arange(len(hist) + 1))
+            by_label = np.argsort(at_view, kind="stable")
+            bounds = np.searchsorted(at_view[by_label], np.arange(len(hist) + 1))
             by_patch = [by_label[bounds[p]:bounds[p + 1]] for p in range(len(hist))]
             n = hist[:, :, rule.first_label:].sum(axis=2, dtype=np.int64)
             share = n / np.maximum(counts, 1)[:, None]
@@ -478,26 +525,37 @@ def merge_view(stats: GITStats, view: int, num_patches: int, pairs: np.ndarray, 
 # ----------------------------------------------------------------------------------------------
 
 
+def merged_label_rows(stats, merges: Sequence[ViewMerge], lo: int, hi: int) -> np.ndarray:
+    """[hi - lo, L] int32: Gaussians lo..hi-1's merged instance in every view (-1: none; their
+    label's entry of the view's lut)."""
+    rows = stats.label[lo:hi]
+    out = np.full(rows.shape, -1, np.int32)
+    for v, m in enumerate(merges):
+        lab = rows[:, v]
+        ok = (lab >= 0) & (lab < len(m.lut))
+        out[ok, v] = m.lut[lab[ok]]
+    return out
+
+
 def associate(stats: GITStats, merges: Sequence[ViewMerge], min_visibility: float,
-              share: float = 0.5) -> list[np.ndarray]:
+              share: float = 0.5, visible: np.ndarray | None = None) -> list[np.ndarray]:
     """Global instance ids: for every view, [G_v + 1] lut from merged instance to a global id (0 -> 0).
 
     Instances (v, m) and (w, m') link when more than ``share`` of each one's Gaussians that are
     co-visible in the other view fall into the other; links are joined strongest first, never
-    joining two instances of the same view.
+    joining two instances of the same view. ``visible``: ``stats.visible(min_visibility)`` when
+    already computed. The merged labels are built a row block at a time into per-Gaussian lists
+    (:func:`visible_lists`), never as an [N, L] table.
     """
     views = len(merges)
-    visible = stats.visible(min_visibility)
-    merged_labels = np.full(stats.label.shape, -1, np.int32)
-    for v, m in enumerate(merges):
-        lab = stats.label[:, v]
-        ok = (lab >= 0) & (lab < len(m.lut))
-        merged_labels[ok, v] = m.lut[lab[ok]]
+    if visible is None:
+        visible = stats.visible(min_visibility)
+    lists = visible_lists(lambda lo, hi: merged_label_rows(stats, merges, lo, hi), visible)
     counts = [m.num_instances for m in merges]
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     width = int(max(counts, default=0)) + 1
     links = []
-    for v, hist in enumerate(all_source_histograms(merged_labels, visible, width, width)):
+    for v, hist in enumerate(_histograms_of_lists(lists, stats.label.shape[1], width, width)):
         if counts[v] == 0:
             continue
         hist = hist.astype(np.float64)  # [G+1, L, G'+1]
@@ -739,9 +797,11 @@ def view_pair_quality(truth: np.ndarray, patch_map: np.ndarray, merge: ViewMerge
 # ----------------------------------------------------------------------------------------------
 
 
-def merge_all(stats: GITStats, hierarchies: Sequence, params: MergeParams) -> tuple[list[ViewMerge], list[np.ndarray]]:
+def merge_all(stats: GITStats | GITVisible, hierarchies: Sequence,
+              params: MergeParams) -> tuple[list[ViewMerge], list[np.ndarray]]:
     """Merge every traced view (``hierarchies``: the views' :class:`PatchHierarchy`, in stats order) and
-    associate the results across views. Returns the per-view merges and global-id luts."""
+    associate the results across views. Returns the per-view merges and global-id luts. ``stats``:
+    the GIT table, or only its labels and visible mask (:class:`GITVisible`, what the step reads)."""
     merges = []
     num_labels = int(stats.num_labels.max(initial=1))
     num_source = max(num_labels, max((h.num_patches + 1 for h in hierarchies), default=1))
@@ -752,7 +812,9 @@ def merge_all(stats: GITStats, hierarchies: Sequence, params: MergeParams) -> tu
         pairs = candidate_pairs(hierarchy, params.candidates)
         merges.append(merge_view(stats, v, hierarchy.num_patches, pairs, params.threshold, params.min_visibility,
                                  hist=hist, rule=rule, visible=visible))
-    luts = associate(stats, merges, params.min_visibility, params.association_share)
+    hist = None  # the last histogram block
+    every.close()  # zip stops on the hierarchies: the generator would hold its per-Gaussian lists
+    luts = associate(stats, merges, params.min_visibility, params.association_share, visible=visible)
     return merges, luts
 
 
@@ -766,7 +828,7 @@ def run_merge(scene, git_dir: Path, patches_dir: Path, out_dir: Path, params: di
     from ..scene import write_u16
 
     p = from_mapping(MergeParams, params, "merge params")
-    stats = GITStats.load(Path(git_dir) / "git.npz")
+    stats = GITVisible.load(Path(git_dir) / "git.npz", p.min_visibility)  # prob is not read, visibility only as the mask
     start = time.perf_counter()
     maps, hierarchies = [], []
     for frame in stats.frames:
@@ -779,11 +841,13 @@ def run_merge(scene, git_dir: Path, patches_dir: Path, out_dir: Path, params: di
                                    f"{int(patch_map.max())} but the GIT trace saw {int(stats.num_labels[v])} labels; "
                                    f"the trace is stale (rerun the trace step).")
     merges, luts = merge_all(stats, hierarchies, p)
+    frames = stats.frames
+    del stats  # the [G, V] arrays: the rest reads the merges and the [V, P] maps
     seconds = time.perf_counter() - start
     out_dir = Path(out_dir)
     (out_dir / "instances").mkdir(parents=True, exist_ok=True)
     outputs = []
-    for frame, patch_map, m, lut in zip(stats.frames, maps, merges, luts):
+    for frame, patch_map, m, lut in zip(frames, maps, merges, luts):
         instance_map = lut[m.lut[patch_map.astype(np.int64)]]
         if instance_map.max(initial=0) > 65535:
             raise ValueError(f"merge: {frame}: more than 65535 global instances.")
@@ -809,7 +873,7 @@ def run_merge(scene, git_dir: Path, patches_dir: Path, out_dir: Path, params: di
     if scene is not None and scene.has_instances and scene.objects is not None:
         table = scene.objects.lookup(p.ground_truth_level)
         truths = []
-        for frame in stats.frames:
+        for frame in frames:
             leaf = scene.instances(frame).astype(np.int64)
             truths.append(table[np.clip(leaf, 0, len(table) - 1)])
         before = segmentation_quality(truths, maps)
@@ -829,7 +893,7 @@ def run_merge(scene, git_dir: Path, patches_dir: Path, out_dir: Path, params: di
                  pair_total.candidates_should_merge, pair_total.should_merge, pair_total.out_of_reach,
                  _fmt(pair_total.precision), _fmt(pair_total.recall))
         if p.preview_views > 0:
-            write_merge_preview(scene, stats.frames, maps, outputs, truths, out_dir / "preview.png", p.preview_views)
+            write_merge_preview(scene, frames, maps, outputs, truths, out_dir / "preview.png", p.preview_views)
     report["per_view"] = views
     write_json(out_dir / "merge.json", report)
     return report

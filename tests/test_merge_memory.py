@@ -1,0 +1,135 @@
+"""The merge step's memory (issue 36 part 2): what it reads of the GIT table, the per-Gaussian view
+lists that replace its [G, V] temporaries, and that none of it changes a merge."""
+
+from __future__ import annotations
+
+import tracemalloc
+
+import numpy as np
+import pytest
+
+import trace3d.tracing.merge as merge
+from trace3d.errors import SceneFormatError
+from trace3d.masks.patches import PatchHierarchy
+from trace3d.tracing.git import GITStats, GITVisible
+from trace3d.tracing.merge import MergeParams, associate, merge_all, merge_view, visible_lists
+
+pytestmark = pytest.mark.usefixtures("single_numba_thread")
+
+
+def random_table(seed: int, n: int, views: int, patches: int, share: float) -> GITStats:
+    """A GIT table whose Gaussians see about ``share`` of the views, labels 0..patches, some -1."""
+    rng = np.random.default_rng(seed)
+    label = rng.integers(0, patches + 1, size=(n, views)).astype(np.int32)
+    seen = rng.random((n, views)) < share
+    label[~seen & (rng.random((n, views)) < 0.5)] = -1
+    visibility = np.where(seen, rng.random((n, views)).astype(np.float32) + 0.01, 0).astype(np.float32)
+    visibility[rng.random((n, views)) < 0.05] = 0.3  # ties with a threshold below
+    return GITStats(label=label, prob=rng.random((n, views)).astype(np.float32), visibility=visibility,
+                    frames=[f"v{i}" for i in range(views)], num_labels=np.full(views, patches + 1, np.int64))
+
+
+def whole(num_patches: int) -> PatchHierarchy:
+    """Patches 1..P inside one coarser mask (every pair is a candidate)."""
+    return PatchHierarchy([[0]] * num_patches, np.ones(num_patches, np.int64), np.ones(1, np.int64),
+                          np.ones(1, np.float32))
+
+
+@pytest.mark.parametrize("top", [5, 32767, 40000])
+@pytest.mark.parametrize("block_entries", [1, 7, 1 << 21])
+def test_visible_lists_are_the_visible_entries_row_major(monkeypatch, top, block_entries):
+    monkeypatch.setattr(merge, "ROW_BLOCK_ENTRIES", block_entries)
+    rng = np.random.default_rng(top)
+    labels = rng.integers(-1, top + 1, size=(50, 6)).astype(np.int32)
+    labels[3, 2] = top
+    visible = rng.random((50, 6)) > 0.3
+    visible[3, 2] = True
+    indptr, indices, values = visible_lists(lambda lo, hi: labels[lo:hi], visible)
+    seen = visible & (labels >= 0)
+    np.testing.assert_array_equal(indptr, np.concatenate([[0], np.cumsum(seen.sum(axis=1))]))
+    np.testing.assert_array_equal(indices, np.nonzero(seen)[1])
+    np.testing.assert_array_equal(values, labels[seen])
+    assert indices.dtype == np.int16
+    assert values.dtype == (np.int16 if top <= 32767 else np.int32)
+
+
+@pytest.mark.parametrize("min_visibility", [0.0, 0.3])
+def test_git_visible_reads_the_labels_and_the_mask_of_git_stats(tmp_path, min_visibility):
+    stats = random_table(1, 300, 7, 4, 0.4)
+    stats.save(tmp_path / "git.npz")
+    back = GITVisible.load(tmp_path / "git.npz", min_visibility)
+    np.testing.assert_array_equal(back.label, stats.label)
+    assert back.label.dtype == np.int32
+    np.testing.assert_array_equal(back.visible(min_visibility), stats.visible(min_visibility))
+    assert back.visible(min_visibility) is back.visible(min_visibility)  # the held mask, not a new one
+    assert back.frames == stats.frames == GITStats.load_frames(tmp_path / "git.npz")
+    np.testing.assert_array_equal(back.num_labels, stats.num_labels)
+    with pytest.raises(ValueError, match="visibility"):
+        back.visible(min_visibility + 0.1)
+
+
+def test_git_visible_refuses_bad_files(tmp_path):
+    stats = random_table(2, 10, 3, 2, 0.5)
+    np.savez_compressed(tmp_path / "short.npz", label=stats.label, prob=stats.prob, visibility=stats.visibility[:, :2],
+                        frames=np.asarray(stats.frames), num_labels=stats.num_labels)
+    with pytest.raises(SceneFormatError, match="disagree in shape"):
+        GITVisible.load(tmp_path / "short.npz", 0.0)
+    (tmp_path / "bad.npz").write_bytes(b"not a zip")
+    for loader in (lambda p: GITVisible.load(p, 0.0), GITStats.load_frames):
+        with pytest.raises(SceneFormatError, match="bad.npz"):
+            loader(tmp_path / "bad.npz")
+        with pytest.raises(SceneFormatError, match="missing"):
+            loader(tmp_path / "none.npz")
+
+
+def _same_merges(a, b):
+    (merges_a, luts_a), (merges_b, luts_b) = a, b
+    assert len(merges_a) == len(merges_b)
+    for x, y in zip(merges_a, merges_b):
+        for key in ("lut", "pairs", "sims", "omega", "merged", "supported"):
+            np.testing.assert_array_equal(getattr(x, key), getattr(y, key))
+    for x, y in zip(luts_a, luts_b):
+        np.testing.assert_array_equal(x, y)
+
+
+@pytest.mark.parametrize("preset", ["paper", "official"])
+def test_merge_of_git_visible_in_row_blocks_equals_git_stats_at_once(tmp_path, monkeypatch, preset):
+    stats = random_table(3, 400, 6, 4, 0.6)
+    stats.save(tmp_path / "git.npz")
+    # random labels agree by chance (about a quarter): a low threshold so that some pairs merge
+    params = MergeParams(preset=preset, threshold=0.22, min_gaussians=10 if preset == "official" else None)
+    hierarchies = [whole(4)] * 6
+    at_once = merge_all(stats, hierarchies, params)
+    assert sum(int(m.merged.sum()) for m in at_once[0]) > 0  # something merges: the comparison means something
+    monkeypatch.setattr(merge, "ROW_BLOCK_ENTRIES", 5)  # one Gaussian at a time
+    monkeypatch.setattr(merge, "HISTOGRAM_BLOCK", 5 * 6 * 5)  # one source view at a time
+    _same_merges(merge_all(GITVisible.load(tmp_path / "git.npz", params.min_visibility), hierarchies, params), at_once)
+    merges = at_once[0]
+    _same_merges((merges, associate(stats, merges, 0.0, 0.5, visible=stats.visible(0.0))), at_once)
+
+
+def test_merge_holds_no_gv_temporary(monkeypatch):
+    """merge_all on the step's table allocates (numpy, traced) less than 4 bytes per (Gaussian, view)
+    beyond its input. Measured: 1.8 (paper) and 3.1 (official) here, where the per-Gaussian view lists
+    (4 bytes per visible entry, a fifth of the entries, + 8 bytes per Gaussian for the row pointers:
+    0.4 per entry at V = 20) are held through the official rule's copy of one source view's Gaussians
+    (int32 labels and a bool per entry: 6 bytes x a fifth); row blocks are of a fixed size, made small
+    here so that they are a small part of this small table. The code before this held an int32 [G, V]
+    table and its astype copy at once (8 bytes) besides np.nonzero's int64 pairs and the merged labels."""
+    monkeypatch.setattr(merge, "ROW_BLOCK_ENTRIES", 1 << 14)
+
+    def table(n, views, seed):
+        stats = random_table(seed, n, views, 6, 0.2)
+        return GITVisible(label=stats.label, mask=stats.visible(0.0), min_visibility=0.0, frames=stats.frames,
+                          num_labels=stats.num_labels)
+
+    n, views = 20000, 20
+    big, small = table(n, views, 4), table(100, views, 5)
+    hierarchies = [whole(6)] * views
+    for preset in ("paper", "official"):
+        merge_all(small, hierarchies, MergeParams(preset=preset))  # numba compiled outside the trace
+        tracemalloc.start()
+        merge_all(big, hierarchies, MergeParams(preset=preset))
+        _, peak = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+        assert peak / (n * views) < 4.0, (preset, peak / (n * views))
