@@ -20,20 +20,21 @@ from trace3d.lifting.contrastive import (ContrastiveParams, ContrastiveTrainer, 
 from trace3d.lifting.kernels.contrastive import fused_contrastive_loss
 from trace3d.lifting.query import FeatureLifted, QueryParams, find_query_points, iou, trace_object
 from trace3d.render import render
-from trace3d.render.pixel_weights import pixel_weights
+from trace3d.render.pixel_weights import pixel_weights, pixel_weights_blend_order
 
 
 # numba kernels on one thread: the tests compare sums whose order must not depend on the pool
 pytestmark = pytest.mark.usefixtures("single_numba_thread")
 
 
-def tilted_scene():
-    """Two overlapping layers (so that pixels blend several splats) seen from an oblique camera."""
+def tilted_scene(back_first: bool = False):
+    """Two overlapping layers (so that pixels blend several splats) seen from an oblique camera
+    (``back_first``: the far layer's Gaussians get the lower indices)."""
     model, truth, cameras = two_objects()
     back = grid_model(-0.7, 0.7, -0.5, 0.5, 2.6, step=0.07)
     back.set("opacity_logits", torch.full((len(back),), 0.3))
     model.set("opacity_logits", torch.full((len(model),), 0.5))
-    return concat(model, back), cameras
+    return (concat(back, model) if back_first else concat(model, back)), cameras
 
 
 # ----------------------------------------------------------------------------------------------
@@ -76,6 +77,35 @@ def test_pixel_weights_match_rasterizer_values_and_gradients(subset):
         torch.testing.assert_close(g_rows, g_full, rtol=1e-5, atol=1e-7)
         with pytest.raises(Trace3DError, match="rows must lie in"):
             weights.render_rows(features, np.array([300]))
+
+
+@pytest.mark.parametrize("view", [0, 1])
+@pytest.mark.parametrize("back_first", [False, True])
+def test_blend_order_pixel_weights_hold_the_same_entries_bit_for_bit(view, back_first):
+    """The evaluation's pass over the views (rows in blending order) against pixel_weights (rows by
+    Gaussian, through the trace kernel): the same rows, each row the same (Gaussian, weight) entries
+    to the bit once sorted by Gaussian, and so the same per-Gaussian sums."""
+    model, cameras = tilted_scene(back_first)
+    cam = cameras[view]
+    splats = model.splats()
+    ref = pixel_weights(splats, cam)
+    fast = pixel_weights_blend_order(splats, cam)
+    assert ref.nnz > 2 * cam.width * cam.height // 4  # the layers overlap: rows of several entries
+    np.testing.assert_array_equal(fast.pixels, ref.pixels)
+    np.testing.assert_array_equal(fast.indptr, ref.indptr)
+    assert fast.indices.dtype == ref.indices.dtype and fast.weights.dtype == ref.weights.dtype
+    rows = np.repeat(np.arange(fast.pixels.size), np.diff(fast.indptr))
+    order = np.lexsort((fast.indices, rows))
+    np.testing.assert_array_equal(fast.indices[order], ref.indices)
+    np.testing.assert_array_equal(fast.weights[order].view(np.int32), ref.weights.view(np.int32))
+    # with the far layer first in the model, blending order is not Gaussian order (the entries moved)
+    assert np.array_equal(fast.indices, ref.indices) != back_first
+    n = len(model)
+    np.testing.assert_array_equal(np.bincount(fast.indices, weights=fast.weights, minlength=n),
+                                  np.bincount(ref.indices, weights=ref.weights, minlength=n))
+    # nothing visible: empty rows
+    far = pixel_weights_blend_order(splats, cam, near=1e3)
+    assert far.nnz == 0 and far.indptr.shape == (cam.width * cam.height + 1,)
 
 
 def test_pixel_weights_refuse_bad_pixels():
@@ -426,7 +456,7 @@ def test_trace_object_from_pixel_weights_matches_the_rasterized_trace():
     """The fast path (products with full-view pixel weights) against GIT tracing of the masks."""
     from trace3d.lifting.query import summed_weights, trace_object_weights
     from trace3d.render import trace
-    from trace3d.render.pixel_weights import pixel_weights
+    from trace3d.render.pixel_weights import pixel_weights, pixel_weights_blend_order
 
     model, truth, cameras = two_objects()
     masks = [pixel_x_world(c) < 0.0 for c in cameras]

@@ -334,9 +334,9 @@ def test_the_pass_holds_one_view_at_a_time(tiny_features, monkeypatch):
     import trace3d.lifting.contrastive as contrastive
     import trace3d.render.pixel_weights as pw
 
-    live = {"weights": 0, "maps": 0}
-    peak = {"weights": 0, "maps": 0}
-    calls = {"weights": 0, "maps": 0}
+    live = {"weights": 0, "maps": 0, "plain": 0}
+    peak = {"weights": 0, "maps": 0, "plain": 0}
+    calls = {"weights": 0, "maps": 0, "plain": 0}
 
     def counted(kind, fn):
         def wrapper(*args, **kwargs):
@@ -348,7 +348,9 @@ def test_the_pass_holds_one_view_at_a_time(tiny_features, monkeypatch):
             return out
         return wrapper
 
-    monkeypatch.setattr(pw, "pixel_weights", counted("weights", pw.pixel_weights))
+    # the pass's weights (rows in blending order); the plain ones must not be computed at all
+    monkeypatch.setattr(pw, "pixel_weights_blend_order", counted("weights", pw.pixel_weights_blend_order))
+    monkeypatch.setattr(pw, "pixel_weights", counted("plain", pw.pixel_weights))
     monkeypatch.setattr(contrastive, "render_feature_map", counted("maps", contrastive.render_feature_map))
     lifted, queries, cameras, train = _lifted_and_queries(tiny_features, map_budget_mb=0)
     one = lifted.with_query(max_queries=1)
@@ -363,7 +365,7 @@ def test_the_pass_holds_one_view_at_a_time(tiny_features, monkeypatch):
     # the answers need no further view
     for q in queries:
         lifted.object_gaussians(q), one.object_gaussians(q), lifted.object_masks(q, cameras)
-    assert calls["weights"] == len(train) and calls["maps"] == len(cameras)
+    assert calls["weights"] == len(train) and calls["maps"] == len(cameras) and calls["plain"] == 0
 
 
 def test_evaluate_metrics_are_those_of_the_all_views_at_once_path(tiny_features, tmp_path, monkeypatch):

@@ -577,13 +577,15 @@ class FeatureLifted:
 
     def _training_views(self):
         """(camera, pixel weights) of each training view in order, computed one at a time (the caller
-        drops a view's weights before asking for the next: then one view's are alive)."""
-        from ..render.pixel_weights import pixel_weights
+        drops a view's weights before asking for the next: then one view's are alive). Each row's
+        entries come in blending order (:func:`~trace3d.render.pixel_weights.pixel_weights_blend_order`:
+        the per-Gaussian sums over rows that the pass makes are :func:`pixel_weights`'s bits)."""
+        from ..render.pixel_weights import pixel_weights_blend_order
 
         splats = self.model.splats()
         for c in self.train_cameras:
             with torch.no_grad():
-                yield c, pixel_weights(splats, c, near=self.params.near)
+                yield c, pixel_weights_blend_order(splats, c, near=self.params.near)
 
     # --- the all-views-at-once path (the twin of the pass; it holds every training view) ----------
     def train_masks(self, q: QueryPoints) -> list[np.ndarray]:
@@ -606,8 +608,13 @@ class FeatureLifted:
         return list(out)
 
     def train_weights(self) -> list:
-        """The full-view pixel weights of every training view at once (not kept: for tests and twins)."""
-        return [w for _, w in self._training_views()]
+        """The full-view pixel weights of every training view at once (:func:`pixel_weights`, rows by
+        Gaussian; not kept: for tests and twins)."""
+        from ..render.pixel_weights import pixel_weights
+
+        splats = self.model.splats()
+        with torch.no_grad():
+            return [pixel_weights(splats, c, near=self.params.near) for c in self.train_cameras]
 
     def object_gaussians_at_once(self, query: ObjectQuery) -> np.ndarray:
         """:meth:`object_gaussians` from every training view's pixel weights and masks held at once (the

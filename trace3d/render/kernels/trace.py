@@ -198,6 +198,75 @@ def trace_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, labe
 
 
 
+@njit(parallel=True, cache=True, fastmath=FASTMATH)
+def pixel_weights_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, fill, out_splat, out_w, write):
+    """Every pixel's blending weights, the trace of one label per pixel without :func:`trace_kernel`'s
+    dense [splats, labels] table per tile: the same lanes, alphas and transmittances (the same inline
+    functions and float32 operations), each blended lane's weight emitted as it is blended.
+
+    Two calls: with ``write`` False, ``fill`` [H * W] (zeros) counts each pixel's entries; with
+    ``write`` True, ``fill`` holds each pixel's first output position (the row pointers) and the
+    entries go to ``out_splat`` (the tile-list splat, ``lists[j]``) and ``out_w``, each pixel's in
+    the order its splats are blended (front to back). The weights are :func:`trace_kernel`'s for the
+    label map ``y * W + x`` (its table adds a pixel's one weight to 0, which gives the weight)."""
+    n_tiles = offsets.shape[0] - 1
+    t_min = np.float32(TRANSMITTANCE_MIN)
+    near32 = np.float32(near)
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    for t in prange(n_tiles):
+        start = offsets[t]
+        end = offsets[t + 1]
+        if start == end:
+            continue
+        px0, py0, px1, py1 = _tile_bounds(t, tiles_x, width, height)
+        n_pix = (px1 - px0) * (py1 - py0)
+        buf = np.zeros(4 * TILE_PIXELS, np.float32)  # transmittance, open flag, alpha, weight planes
+        buf[:2 * TILE_PIXELS] = 1.0
+        n_done = 0
+        for j in range(start, end):
+            lx0, lx1, y0, y1 = _box_in_tile(ebox, j, px0, py0, px1, py1)
+            a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2, mx, my, opac = splat_geometry(egeom, j)
+            q0 = (y0 - py0) * TILE
+            q1 = (y1 - py0) * TILE
+            for q in range(q0, q1):
+                p, al, _ = _lane_alpha(q, px0, py0, lx0, lx1, a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2,
+                                       mx, my, opac, near32)
+                buf[T_RA + p] = al
+            finished = 0
+            for q in range(q0, q1):
+                p = np.uint64(q)
+                alpha = buf[T_RA + p]
+                tr = buf[p]
+                open_p = buf[T_OPEN + p]
+                live = (alpha > zero) & (open_p > zero)
+                t_next = tr * (one - alpha)
+                stop = live & (t_next < t_min)
+                blend = live & (t_next >= t_min)
+                buf[T_RW + p] = alpha * tr if blend else zero
+                buf[p] = t_next if blend else tr
+                buf[T_OPEN + p] = zero if stop else open_p
+                finished += np.int64(stop)
+            n_done += finished
+            for q in range(q0, q1):
+                w = buf[T_RW + np.uint64(q)]
+                if w != zero:
+                    px = px0 + q % TILE
+                    py = py0 + q // TILE
+                    if px < px1 and py < py1:
+                        pix = py * width + px
+                        if write:
+                            k = fill[pix]
+                            out_splat[k] = lists[j]
+                            out_w[k] = w
+                            fill[pix] = k + 1
+                        else:
+                            fill[pix] += 1
+            if n_done == n_pix:
+                break
+
+
+
 # Upper bound on the (splat, label) slots one trace_kernel call preallocates (20 bytes each): tiles
 # are processed in batches below it, so memory stays bounded however many labels a view has (a
 # single tile over the bound is processed alone).
