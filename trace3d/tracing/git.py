@@ -36,15 +36,10 @@ log = logging.getLogger(__name__)
 PRESETS = ("paper", "official")
 
 
-@dataclass
-class GITStats:
-    """Per-view argmax reduction of the GIT weights (see the module docstring for the shapes)."""
+class _LabelTable:
+    """The shape of a GIT table with a ``label`` array [N, L] (N Gaussians, L views)."""
 
-    label: np.ndarray  # [N, L] int32
-    prob: np.ndarray  # [N, L] float32
-    visibility: np.ndarray  # [N, L] float32
-    frames: list[str]
-    num_labels: np.ndarray  # [L] int64
+    label: np.ndarray
 
     @property
     def num_gaussians(self) -> int:
@@ -53,6 +48,17 @@ class GITStats:
     @property
     def num_views(self) -> int:
         return int(self.label.shape[1])
+
+
+@dataclass
+class GITStats(_LabelTable):
+    """Per-view argmax reduction of the GIT weights (see the module docstring for the shapes)."""
+
+    label: np.ndarray  # [N, L] int32
+    prob: np.ndarray  # [N, L] float32
+    visibility: np.ndarray  # [N, L] float32
+    frames: list[str]
+    num_labels: np.ndarray  # [L] int64
 
     def visible(self, min_visibility: float) -> np.ndarray:
         """[N, L] bool: Gaussian i sees view v (its visibility exceeds ``min_visibility``)."""
@@ -97,7 +103,7 @@ ROW_BLOCK_ENTRIES = 1 << 21
 
 
 @dataclass
-class GITVisible:
+class GITVisible(_LabelTable):
     """The GIT table as the ``merge`` step reads it: the labels and the visible mask at one visibility
     threshold, without ``prob`` (the merge never reads it) and ``visibility`` (read only through the
     mask): 5 instead of 12 bytes per (Gaussian, view). It answers ``label``, ``frames``,
@@ -108,14 +114,6 @@ class GITVisible:
     min_visibility: float
     frames: list[str]
     num_labels: np.ndarray  # [L] int64
-
-    @property
-    def num_gaussians(self) -> int:
-        return int(self.label.shape[0])
-
-    @property
-    def num_views(self) -> int:
-        return int(self.label.shape[1])
 
     def visible(self, min_visibility: float) -> np.ndarray:
         """The mask (:meth:`GITStats.visible` at this table's threshold, the same array every call)."""
