@@ -18,6 +18,37 @@ T_RA = np.uint64(2 * TILE_PIXELS)
 T_RW = np.uint64(3 * TILE_PIXELS)
 T_LOC = np.uint64(4 * TILE_PIXELS)
 T_COL = np.uint64(5 * TILE_PIXELS)
+
+
+@njit(inline="always", fastmath=FASTMATH)
+def _blend_footprint(buf, geometry, q0, q1, px0, py0, lx0, lx1, near32, t_min, unit_weight):
+    """One splat over the lanes of its footprint's rows in a tile (``trace_kernel`` and
+    ``pixel_weights_kernel``): every lane's alpha (0 outside the box) into the alpha plane, then the blend
+    of the open lanes without branches, as in ``forward_kernel``: the weight plane gets alpha x T (1 with
+    ``unit_weight``) where the lane blends, else 0; transmittance and open flag advance. Returns how many
+    lanes closed (their transmittance fell below ``t_min``)."""
+    a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2, mx, my, opac = geometry
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    for q in range(q0, q1):
+        p, al, _ = _lane_alpha(q, px0, py0, lx0, lx1, a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2,
+                               mx, my, opac, near32)
+        buf[T_RA + p] = al
+    finished = 0
+    for q in range(q0, q1):
+        p = np.uint64(q)
+        alpha = buf[T_RA + p]
+        tr = buf[p]
+        open_p = buf[T_OPEN + p]
+        live = (alpha > zero) & (open_p > zero)
+        t_next = tr * (one - alpha)
+        stop = live & (t_next < t_min)
+        blend = live & (t_next >= t_min)
+        buf[T_RW + p] = (one if unit_weight else alpha * tr) if blend else zero
+        buf[p] = t_next if blend else tr
+        buf[T_OPEN + p] = zero if stop else open_p
+        finished += np.int64(stop)
+    return finished
 # trace_kernel sums the weights of a tile with at most this many labels label by label in vector loops
 TRACE_LABEL_PASSES = 4
 
@@ -68,7 +99,6 @@ def trace_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, labe
     t_min = np.float32(TRANSMITTANCE_MIN)
     near32 = np.float32(near)
     zero = np.float32(0.0)
-    one = np.float32(1.0)
     cap = np.zeros(n_batch + 1, np.int64)
     for b in range(n_batch):
         t = tiles[b]
@@ -116,30 +146,10 @@ def trace_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, labe
         for j in range(start, end):
             n_used = j + 1
             lx0, lx1, y0, y1 = _box_in_tile(ebox, j, px0, py0, px1, py1)
-            a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2, mx, my, opac = splat_geometry(egeom, j)
             q0 = (y0 - py0) * TILE
             q1 = (y1 - py0) * TILE
-            # every lane of the footprint's rows in one loop per pass, as in forward_kernel: alpha (0
-            # outside the box), then the blend of the open lanes without branches
-            for q in range(q0, q1):
-                p, al, _ = _lane_alpha(q, px0, py0, lx0, lx1, a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2,
-                                       mx, my, opac, near32)
-                buf[T_RA + p] = al
-            finished = 0
-            for q in range(q0, q1):
-                p = np.uint64(q)
-                alpha = buf[T_RA + p]
-                tr = buf[p]
-                open_p = buf[T_OPEN + p]
-                live = (alpha > zero) & (open_p > zero)
-                t_next = tr * (one - alpha)
-                stop = live & (t_next < t_min)
-                blend = live & (t_next >= t_min)
-                buf[T_RW + p] = (one if count_pixels else alpha * tr) if blend else zero
-                buf[p] = t_next if blend else tr
-                buf[T_OPEN + p] = zero if stop else open_p
-                finished += np.int64(stop)
-            n_done += finished
+            n_done += _blend_footprint(buf, splat_geometry(egeom, j), q0, q1, px0, py0, lx0, lx1, near32, t_min,
+                                       count_pixels)
             # the blended lanes' weights into their labels' sums (w = 0 where not blended)
             if n_lab <= TRACE_LABEL_PASSES:
                 # one pass per label: per-column sums over the rows (a vector loop), then the 16
@@ -213,7 +223,6 @@ def pixel_weights_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, ne
     t_min = np.float32(TRANSMITTANCE_MIN)
     near32 = np.float32(near)
     zero = np.float32(0.0)
-    one = np.float32(1.0)
     for t in prange(n_tiles):
         start = offsets[t]
         end = offsets[t + 1]
@@ -226,28 +235,10 @@ def pixel_weights_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, ne
         n_done = 0
         for j in range(start, end):
             lx0, lx1, y0, y1 = _box_in_tile(ebox, j, px0, py0, px1, py1)
-            a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2, mx, my, opac = splat_geometry(egeom, j)
             q0 = (y0 - py0) * TILE
             q1 = (y1 - py0) * TILE
-            for q in range(q0, q1):
-                p, al, _ = _lane_alpha(q, px0, py0, lx0, lx1, a0, a1, a2, b0, b1, b2, d0, d1, d2, tw0, tw1, tw2,
-                                       mx, my, opac, near32)
-                buf[T_RA + p] = al
-            finished = 0
-            for q in range(q0, q1):
-                p = np.uint64(q)
-                alpha = buf[T_RA + p]
-                tr = buf[p]
-                open_p = buf[T_OPEN + p]
-                live = (alpha > zero) & (open_p > zero)
-                t_next = tr * (one - alpha)
-                stop = live & (t_next < t_min)
-                blend = live & (t_next >= t_min)
-                buf[T_RW + p] = alpha * tr if blend else zero
-                buf[p] = t_next if blend else tr
-                buf[T_OPEN + p] = zero if stop else open_p
-                finished += np.int64(stop)
-            n_done += finished
+            n_done += _blend_footprint(buf, splat_geometry(egeom, j), q0, q1, px0, py0, lx0, lx1, near32, t_min,
+                                       False)
             for q in range(q0, q1):
                 w = buf[T_RW + np.uint64(q)]
                 if w != zero:
