@@ -12,7 +12,7 @@ rule gaussians:
     params:
         p=quoted_params("gaussians"),
         code=step_code("gaussians"),
-    threads: 2  # kept at 2: the training's results depend on the thread count (docs/performance.md, 'Rule threads')
+    threads: 1  # same bits at any thread count (TrainParams.grad_buffers); two 1-thread jobs use 2 cores better (docs/performance.md, 'Rule threads')
     resources:
         mem_mb=4000,
         runtime=60,

@@ -78,7 +78,7 @@ rule refine:
         p=preset_params("refine"),
         labels=refine_labels_arg,
         code=step_code("refine"),
-    threads: 2  # the retraining's results differ at 1 thread (docs/performance.md, 'Rule threads')
+    threads: 1  # same bits at any thread count (TrainParams.grad_buffers); two 1-thread jobs use 2 cores better (docs/performance.md, 'Rule threads')
     resources:
         mem_mb=4000,
         runtime=60,

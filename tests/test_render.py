@@ -662,6 +662,38 @@ class TestValuesOnlyBackward:
         assert torch.equal(grads[True], grads[False])
 
 
+def test_backward_bits_do_not_depend_on_the_thread_count():
+    """The backward deals its tiles to a fixed number of gradient buffers (``gradient_buffers``), not
+    one per thread: the same gradients to the bit at 1 and 2 numba threads, which lets the fit and the
+    refine run as 1-thread jobs with the files of a 2-thread run. Another buffer count sums in another
+    order: the same gradients up to rounding, not to the bit."""
+    import numba
+
+    from trace3d.render import GRADIENT_BUFFERS, gradient_buffer_count, gradient_buffers
+
+    # 80x64 pixels: 5x4 tiles, most splats on several of them
+    splats, camera, features = make_scene(31, n=300, camera=make_camera(80, 64, focal=60.0))
+    before = numba.get_num_threads()
+
+    def grads(threads: int, buffers: int = 0):
+        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+        try:
+            with gradient_buffers(buffers):
+                sp, feats = with_grad(splats, features)
+                out = render(sp, camera, feats, with_distortion=True, backend="numba")
+                weighted_loss(out).backward()
+                return [t.grad.clone() for t in (*sp, feats)]
+        finally:
+            numba.set_num_threads(before)
+
+    one, two = grads(1), grads(2)
+    assert all(torch.equal(a, b) for a, b in zip(one, two))
+    assert gradient_buffer_count() == GRADIENT_BUFFERS  # the context restored it
+    three = grads(1, 3)
+    assert max(rel_err(b, a) for a, b in zip(one, three)) <= 1e-5
+    assert not all(torch.equal(a, b) for a, b in zip(one, three))
+
+
 @pytest.mark.parametrize("n_chunks", [1, 2, 3])
 def test_backward_chunk_sum_matches_numpy(n_chunks):
     """The backward's per-worker buffers, summed and split in one numba pass, against numpy's sum."""

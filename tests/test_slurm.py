@@ -215,9 +215,14 @@ def _check_against_local(local, local_run, local_log, cluster, elsewhere, env_lo
         assert int(job["cpus"]) == threads, (rule, job)
         assert job["mem"] == f"{mem_mb}M", (rule, job)
         assert _minutes(job["limit"]) == runtime, (rule, job)
-    # rules/gaussians.smk: threads 2, mem_mb 4000, runtime 60
+    # rules/gaussians.smk: mem_mb 4000, runtime 60; threads 1 there, 2 in the profile (set-threads)
     assert (by_rule["gaussians"]["cpus"], by_rule["gaussians"]["mem"], by_rule["gaussians"]["limit"]) == \
         ("2", "4000M", "1:00:00")
+    assert by_rule["refine"]["cpus"] == "2"
+    # the local run fitted and refined on 1 thread: the equal files below are also the training's
+    # independence of the thread count, on the real steps
+    local_plan = _planned_resources(local_log.read_text())
+    assert local_plan["gaussians"][0] == 1 and local_plan["refine"][0] == 1, local_plan
 
     # the same files, byte for byte, but for wall-clock times
     a, b = _digests(local / "results"), _digests(cluster / "results")

@@ -48,6 +48,26 @@ def test_fit_reduces_loss_and_reaches_psnr_on_tiny_scene():
     torch.testing.assert_close(again.model.means, again2.model.means)
 
 
+def test_fit_gives_the_same_bits_at_one_and_two_threads():
+    """The fit's files do not depend on ``--threads`` (the rasterizer's backward sums a fixed number of
+    gradient buffers, TrainParams.grad_buffers): the `gaussians` and `refine` rules run as 1-thread jobs
+    with the bits of a 2-thread run. Densification, the normal loss and SH degree 1 are all inside the run."""
+    from trace3d.threads import limit_threads
+
+    cameras, images = plane_views(4)
+    model = init_from_points(plane_points(), np.full((300, 3), 0.5), sh_degree=1, seed=0)
+    params = tiny_params(iterations=60, densify_from=10, densify_until=50, densify_interval=10, normal_from=20,
+                         sh_degree_interval=30)
+    models = []
+    for threads in (1, 2):
+        with limit_threads(threads):
+            models.append(fit(model, cameras, images, params, progress=False).model)
+    one, two = models
+    assert len(one) == len(two) > 300  # densified
+    for name in ("means", "quats", "log_scales", "opacity_logits", "sh_dc", "sh_rest"):
+        assert torch.equal(getattr(one, name), getattr(two, name)), name
+
+
 def test_fit_divergence_raises_with_last_good_checkpoint():
     cameras, images = plane_views(4)
     images[2] = images[2].clone()

@@ -8,10 +8,11 @@ Public API::
 
 from .core import (BACKENDS, RenderOutput, render, set_default_backend, trace, trace_argmax,
                    trace_by_backward, trace_reduced)
+from .kernels.rasterize import GRADIENT_BUFFERS, gradient_buffer_count, gradient_buffers
 from .projection import Projected, Splats, project, quat_to_rotmat
 
 __all__ = [
-    "BACKENDS", "Projected", "RenderOutput", "Splats", "project", "quat_to_rotmat", "render",
-    "set_default_backend", "trace", "trace_argmax", "trace_by_backward",
+    "BACKENDS", "GRADIENT_BUFFERS", "Projected", "RenderOutput", "Splats", "project", "quat_to_rotmat", "render",
+    "gradient_buffer_count", "gradient_buffers", "set_default_backend", "trace", "trace_argmax", "trace_by_backward",
     "trace_reduced",
 ]

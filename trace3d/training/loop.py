@@ -47,6 +47,7 @@ from ..gaussians import GaussianModel, all_finite
 from .kernels.losses import surface_depth
 from .losses import depth_normal_consistency, photometric_terms, psnr, ssim
 from ..scene import Camera
+from ..render import gradient_buffers
 from ..threads import torch_threads
 from .optimizer import GaussianOptimizer, learning_rates
 from .params import TrainParams
@@ -195,7 +196,7 @@ def fit(
         # Adam and the default density control run with the process's torch threads (``--threads``),
         # the rest of the loop with params.torch_threads (docs/performance.md)
         bulk_threads = torch.get_num_threads()
-        with torch_threads(params.torch_threads):
+        with torch_threads(params.torch_threads), gradient_buffers(params.grad_buffers):
             return _fit_loop(model, cameras, images, params, extent, progress, device, callback, strategy, lrs, desc,
                              bulk_threads)
     finally:

@@ -102,11 +102,16 @@ class TrainParams:
     # rasterizer's numba kernels, which run their own threads; torch's OpenMP threads spin-waiting
     # beside them made an iteration 15x slower on a busy 2-core machine (5.0 vs 0.33 s at 80k splats).
     torch_threads: int = 1
+    # The CPU rasterizer's backward deals the tiles to this many gradient buffers, summed in order:
+    # the fit's bits depend on this number, never on the thread count (--threads), so a 1-thread and
+    # a 2-thread job give the same files. At most this many threads share the backward; more buffers
+    # give other bits, as deterministic (trace3d.render.gradient_buffers).
+    grad_buffers: int = 2
 
     def __post_init__(self) -> None:
         positive = ("iterations", "densify_interval", "opacity_reset_interval", "sh_degree_interval",
                     "checkpoint_interval", "init_max_points", "depth_init_stride", "random_init_count",
-                    "split_count", "max_gaussians", "log_interval")
+                    "split_count", "max_gaussians", "log_interval", "grad_buffers")
         for name in positive:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")

@@ -4,7 +4,9 @@ kernel and picks the full or the values-only backward, and :func:`rasterize`, wh
 
 from __future__ import annotations
 
-import numba
+import contextlib
+from typing import Iterator
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -15,6 +17,35 @@ from .backward_values import backward_values_kernel, sum_value_chunks
 from .binning import Binning
 from .forward import forward_kernel
 from .tiles import _f32, _geom_array, pack_geometry
+
+# The backward deals the image's tiles to this many gradient buffers (tile t to buffer t mod n) and
+# sums them in buffer order, one thread per buffer at a time: the gradients' bits depend on this
+# number and never on how many threads run the kernel. 2 is what every run before 2026-11-28 used
+# at 2 threads (the buffer count was then the thread count), so the README's fits keep their bits.
+GRADIENT_BUFFERS = 2
+_gradient_buffers = GRADIENT_BUFFERS
+
+
+def gradient_buffer_count() -> int:
+    """The number of gradient buffers the rasterizer's backward deals its tiles to."""
+    return _gradient_buffers
+
+
+@contextlib.contextmanager
+def gradient_buffers(count: int) -> Iterator[None]:
+    """Run the block with the backward's tiles dealt to ``count`` gradient buffers (0: unchanged).
+
+    More buffers let more threads share the backward (at most one thread per buffer) for another
+    order of the gradient sums, hence other bits, as deterministic; memory grows by one
+    [N, 15 + K] float32 array per buffer."""
+    global _gradient_buffers
+    previous = _gradient_buffers
+    if count > 0:
+        _gradient_buffers = int(count)
+    try:
+        yield
+    finally:
+        _gradient_buffers = previous
 
 class _Rasterize(torch.autograd.Function):
     @staticmethod
@@ -57,7 +88,7 @@ class _Rasterize(torch.autograd.Function):
             return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
 
         g_head = arr(v_head, (h, w, ctx.split))
-        n_chunks = max(1, numba.get_num_threads())
+        n_chunks = _gradient_buffers
         gdt, vdt, dev = ctx.in_dtype
         if not ctx.needs_input_grad[0]:
             # frozen geometry: the value gradients alone, for the columns that need them (the depth,
