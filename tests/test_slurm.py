@@ -135,6 +135,17 @@ def _planned_resources(dry_run: str) -> dict[str, tuple[int, int, int]]:
     return plan
 
 
+def _threads_by_rule(log: str) -> dict[str, int]:
+    """rule -> threads of every job a Snakemake log lists (no ``threads:`` line: 1)."""
+    out = {}
+    for block in re.split(r"\n(?=\[[^\n]*\]\n(?:local)?rule )", log):
+        head = re.search(r"^(?:local)?rule (\w+):", block, flags=re.M)
+        if head:
+            threads = re.search(r"^\s+threads: (\d+)", block, flags=re.M)
+            out[head.group(1)] = int(threads.group(1)) if threads else 1
+    return out
+
+
 def _minutes(limit: str) -> int:
     """squeue's time limit ([days-]hours:minutes:seconds | minutes:seconds) in minutes."""
     days, _, clock = limit.rpartition("-")
@@ -221,8 +232,8 @@ def _check_against_local(local, local_run, local_log, cluster, elsewhere, env_lo
     assert by_rule["refine"]["cpus"] == "2"
     # the local run fitted and refined on 1 thread: the equal files below are also the training's
     # independence of the thread count, on the real steps
-    local_plan = _planned_resources(local_log.read_text())
-    assert local_plan["gaussians"][0] == 1 and local_plan["refine"][0] == 1, local_plan
+    local_threads = _threads_by_rule(local_log.read_text())
+    assert local_threads["gaussians"] == 1 and local_threads["refine"] == 1, local_threads
 
     # the same files, byte for byte, but for wall-clock times
     a, b = _digests(local / "results"), _digests(cluster / "results")
