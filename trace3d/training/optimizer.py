@@ -18,6 +18,8 @@ from ..gaussians import GaussianModel
 from ..threads import torch_threads
 from .params import TrainParams
 
+ADAM_THREADS = 1  # torch threads of the Adam step (see GaussianOptimizer.__init__)
+
 
 def learning_rates(params: TrainParams, extent: float) -> dict[str, float]:
     """The 2DGS learning rate of every core parameter group (positions scaled by the extent)."""
@@ -67,9 +69,13 @@ class GaussianOptimizer:
         self.optimizer = torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=fused or None)
         self.statistics: dict[str, torch.Tensor] = {}
         self._fills: dict[str, float] = {}
-        # torch threads for the Adam step and the default density control (0: the caller's): work
-        # that streams every Gaussian's tensors, element by element, so its result does not depend
-        # on the thread count (tested); the training loop sets the process's thread budget here
+        # torch threads for the default density control (0: the caller's): work that streams every
+        # Gaussian's tensors, element by element, so its result does not depend on the thread count
+        # (tested); the training loop sets the process's thread budget here. The Adam step runs on
+        # ADAM_THREADS whatever the budget: in a fit (48x36 pixels, 10k Gaussians, 40 iterations) torch's
+        # fused CPU Adam on 2 threads gave other bits than on 1, which an isolated Adam step on the same
+        # shapes does not show; on 1 thread the fit's files cannot depend on --threads (docs/performance.md,
+        # 'Rule threads'), and they are those of every fit made so far at 1 or 2 threads on the rooms
         self.bulk_threads = 0
         self._grad_buffers: dict[str, torch.Tensor] = {}  # sparse_step's dense gradients (zero between steps)
 
@@ -109,7 +115,7 @@ class GaussianOptimizer:
         if self.params.visible_adam and rows is not None:
             self.visible_step(rows)
         else:
-            with torch_threads(self.bulk_threads):
+            with torch_threads(ADAM_THREADS):
                 self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
 
