@@ -673,3 +673,18 @@ def test_lift_step_labels_method_through_the_cli(tiny_fitted, tmp_path):
     no_labels = [a for a in args[:-1] if a not in ("--labels", str(root / "scene" / "instances"))]
     assert main(no_labels + [str(tmp_path / "nolabels"), "--params", json.dumps({"method": "labels"})]) == 2
     assert not (tmp_path / "nolabels").exists()
+
+
+def test_self_prompting_views_render_the_indicator_of_indicator_render():
+    """FrozenViews (each view projected and binned once, shared by the queries) against indicator_render
+    (a full render per call): the same indicator images to the bit, cached or past the memory budget."""
+    from trace3d.lifting.self_prompt import FrozenViews, indicator_render
+
+    model, _, cameras = two_objects()
+    members = np.random.default_rng(3).random(len(model)) < 0.4
+    for budget in (1 << 30, 0):
+        views = FrozenViews(model, 0.01, max_bytes=budget)
+        for cam in cameras:
+            got = views.indicator(views.view(cam), members)
+            assert got.max() > 0.1 and np.array_equal(got, indicator_render(model, cam, members, 0.01))
+        assert (len(views.views) == len(cameras) and views.bytes > 0) if budget else not views.views

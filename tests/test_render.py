@@ -863,3 +863,29 @@ def test_kernels_match_a_brute_force_per_pixel_twin(seed, rotate):
     for i, (a, b) in enumerate(zip(k_grads, b_grads)):  # means, quats, scales, opacities, features
         assert float(b.abs().max()) > 1.0, i
         assert rel_err(a, b) < 2e-4, (i, rel_err(a, b))  # measured: at most 3.3e-5
+
+
+def test_frozen_view_gives_the_bits_of_render_and_trace():
+    """FrozenView (a view's projection and tile lists built once, for self-prompting's many renders and
+    traces of the same views) against render() and trace(), which build both on every call."""
+    from trace3d.render import trace
+    from trace3d.render.core import FrozenView
+
+    splats, camera, _ = make_scene(41, n=300, camera=make_camera(80, 64, focal=60.0))
+    gen = torch.Generator().manual_seed(41)
+    view = FrozenView(splats, camera)
+    assert view.rows is not None and 0 < view.seen.size < 300 and view.nbytes > 0
+    seen = Splats(*(t.index_select(0, torch.from_numpy(view.seen)) for t in splats))
+    everything = FrozenView(seen, camera)  # every splat seen: no row selection
+    assert everything.rows is None
+    for v, sp in ((view, splats), (everything, seen)):
+        n = sp.means.shape[0]
+        for channels in (1, 5):
+            f = torch.rand(n, channels, generator=gen)
+            assert torch.equal(v.render_features(f), render(sp, camera, f, backend="numba").features)
+        labels = torch.randint(-1, 4, (camera.height, camera.width), generator=gen)
+        a, b = v.trace(labels, 4), trace(sp, camera, labels, 4)
+        assert a.shape == b.shape and a.values().numel() > 100
+        assert torch.equal(a.indices(), b.indices()) and torch.equal(a.values(), b.values())
+        # the binning is reused: a second render of the same features is the same again
+        assert torch.equal(v.render_features(f), v.render_features(f))

@@ -114,6 +114,39 @@ def indicator_render(model: GaussianModel, camera: Camera, members: np.ndarray, 
         return render(model.splats(), camera, f, near=near).features[..., 0].numpy()
 
 
+# what a SelfPromptLifted keeps of the views' projections and tile lists (1 GiB: every view of the
+# default 160x120 rooms, a few hundred MB; past it a view is projected and binned on each use)
+VIEW_CACHE_BYTES = 1 << 30
+
+
+class FrozenViews:
+    """Each camera's :class:`~trace3d.render.core.FrozenView` of one frozen scene, kept while their
+    bytes stay under ``max_bytes``: every query self-prompts across the same training views, so the
+    projection and the binning are done once per view, not twice per view and query. The renders and
+    traces are the bits of :func:`indicator_render` and :func:`~trace3d.render.trace` (tested)."""
+
+    def __init__(self, model: GaussianModel, near: float, max_bytes: int = VIEW_CACHE_BYTES):
+        self.splats, self.near, self.max_bytes = model.splats(), float(near), int(max_bytes)
+        self.views: dict[str, object] = {}
+        self.bytes = 0
+
+    def view(self, camera: Camera):
+        from ..render.core import FrozenView
+
+        v = self.views.get(camera.name)
+        if v is None:
+            v = FrozenView(self.splats, camera, self.near)
+            if self.bytes + v.nbytes <= self.max_bytes:
+                self.views[camera.name] = v
+                self.bytes += v.nbytes
+        return v
+
+    @staticmethod
+    def indicator(view, members: np.ndarray) -> np.ndarray:
+        f = torch.from_numpy(np.asarray(members, np.float32))[:, None]
+        return view.render_features(f)[..., 0].numpy()
+
+
 @dataclass
 class SelfPromptResult:
     gaussians: np.ndarray  # [N] bool
@@ -122,20 +155,19 @@ class SelfPromptResult:
 
 
 def self_prompt(model: GaussianModel, cameras: Sequence[Camera], reference: Camera, mask: np.ndarray, segmenter,
-                params: SelfPromptParams, progress: bool = False) -> SelfPromptResult:
-    """Run self-prompting from ``mask`` ([H, W] bool) on ``reference`` across ``cameras`` (the training views)."""
-    from ..render import trace
+                params: SelfPromptParams, progress: bool = False, views: FrozenViews | None = None) -> SelfPromptResult:
+    """Run self-prompting from ``mask`` ([H, W] bool) on ``reference`` across ``cameras`` (the training views).
 
+    ``views``: the scene's projected views, shared by the queries of one scene (default: a fresh set)."""
     mask = np.asarray(mask, bool)
     if not mask.any():
         raise Trace3DError(f"self-prompting: the reference mask on {reference.name!r} is empty.")
-    splats = model.splats()
+    views = FrozenViews(model, params.near) if views is None else views
     fg = torch.zeros(len(model), dtype=torch.float64)
     total = torch.zeros(len(model), dtype=torch.float64)
 
-    def add(cam: Camera, view_mask: np.ndarray) -> None:
-        with torch.no_grad():
-            w = trace(splats, cam, torch.from_numpy(view_mask.astype(np.int64)), 2, near=params.near).coalesce()
+    def add(view, view_mask: np.ndarray) -> None:
+        w = view.trace(torch.from_numpy(view_mask.astype(np.int64)), 2)
         rows, cols = w.indices()
         vals = w.values().double()
         total.index_add_(0, rows, vals)
@@ -149,7 +181,7 @@ def self_prompt(model: GaussianModel, cameras: Sequence[Camera], reference: Came
     if params.max_views is not None:
         ordered = ordered[: params.max_views]
     first = segmenter.segment(reference.name, sample_prompts(mask, params.points, rng), rng, like=mask)
-    add(reference, first)
+    add(views.view(reference), first)
     visited, skipped = [reference.name], []
     bar = tqdm(ordered[1:], desc="self-prompting", disable=not progress, leave=False,
                mininterval=0.5 if sys.stderr.isatty() else 30.0)
@@ -157,12 +189,13 @@ def self_prompt(model: GaussianModel, cameras: Sequence[Camera], reference: Came
         current = members()
         if not current.any():
             break
-        region = indicator_render(model, cam, current, params.near) > params.mask_threshold
+        view = views.view(cam)
+        region = views.indicator(view, current) > params.mask_threshold
         if region.sum() < params.min_prompt_pixels:
             skipped.append(cam.name)
             continue
         view_mask = segmenter.segment(cam.name, sample_prompts(region, params.points, rng), rng, like=region)
-        add(cam, view_mask)
+        add(view, view_mask)
         visited.append(cam.name)
     return SelfPromptResult(members(), visited, skipped)
 
@@ -176,6 +209,7 @@ class SelfPromptLifted:
         self.segmenter = segmenter
         self.params = params
         self._results: dict[str, SelfPromptResult] = {}
+        self.views = FrozenViews(model, params.near)
 
     def result(self, query: ObjectQuery) -> SelfPromptResult:
         from .query import query_key
@@ -185,7 +219,8 @@ class SelfPromptLifted:
             ref = next((c for c in self.train_cameras if c.name == query.reference), None)
             if ref is None:
                 raise Trace3DError(f"query: reference view {query.reference!r} is not a training view.")
-            self._results[key] = self_prompt(self.model, self.train_cameras, ref, query.mask, self.segmenter, self.params)
+            self._results[key] = self_prompt(self.model, self.train_cameras, ref, query.mask, self.segmenter, self.params,
+                                             views=self.views)
         return self._results[key]
 
     def object_gaussians(self, query: ObjectQuery) -> np.ndarray:
@@ -193,7 +228,7 @@ class SelfPromptLifted:
 
     def object_masks(self, query: ObjectQuery, cameras: Sequence[Camera]) -> list[np.ndarray]:
         members = self.object_gaussians(query)
-        return [indicator_render(self.model, c, members, self.params.near) > self.params.mask_threshold for c in cameras]
+        return [self.views.indicator(self.views.view(c), members) > self.params.mask_threshold for c in cameras]
 
 
 def make_prompt_segmenter(scene: Scene, params: SelfPromptParams):

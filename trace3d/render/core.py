@@ -328,3 +328,59 @@ def trace_argmax(weights: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     label = torch.where(has, label, torch.full_like(label, -1))
     prob = torch.where(has, best / total.clamp_min(1e-30), torch.zeros_like(total))
     return label, prob, total
+
+
+class FrozenView:
+    """One camera's projection of a frozen scene (no gradients) and its tile binning, built once.
+
+    For a consumer that renders and traces the same view many times with other features or labels
+    (self-prompting: every query renders and traces each training view), :meth:`render_features`
+    and :meth:`trace` skip the projection and the binning and give the bits of :func:`render`'s
+    ``features`` and of :func:`trace` (numba back end, CPU; tested), which build the same two from
+    the same splats on every call. ``nbytes`` is what the view holds (its visible splats'
+    projection and tile lists), for a caller that keeps views up to a memory budget.
+    """
+
+    def __init__(self, splats: Splats, camera: Camera, near: float = 0.01):
+        from .kernels.binning import Binning
+
+        n = check_splats(splats)
+        with torch.no_grad():
+            proj = project(splats, camera, near)
+        rows = torch.nonzero(proj.visible).squeeze(1)
+        self.num_splats, self.camera, self.near = n, camera, float(near)
+        self.rows = None if rows.numel() == n else rows  # as render(): None when every splat is seen
+        self.seen = rows.cpu().numpy()
+        self.proj = proj if self.rows is None else proj.select(rows)
+        self.binning = Binning(self.proj, camera.width, camera.height)
+        tensors = (self.proj.ray_transforms, self.proj.coeffs, self.proj.means2d, self.proj.normals,
+                   self.proj.depths, self.proj.opacities, self.proj.visible)
+        arrays = (self.seen, self.proj.boxes, self.binning.boxes, self.binning.order, self.binning.offsets,
+                  self.binning.lists, self.binning.entry_boxes)
+        self.nbytes = sum(t.element_size() * t.numel() for t in tensors) + sum(a.nbytes for a in arrays)
+
+    def render_features(self, features: Tensor) -> Tensor:
+        """[H, W, C]: ``render(splats, camera, features, near=near).features`` (zero background)."""
+        from .kernels.rasterize import rasterize
+
+        _check_features(features, self.num_splats, "features")
+        f = features if self.rows is None else features.index_select(0, self.rows)
+        background = torch.zeros(f.shape[1], device=f.device, dtype=f.dtype)
+        with torch.no_grad():
+            out = rasterize(self.proj, f, self.camera.width, self.camera.height, background, self.near,
+                            binning=self.binning)
+        return out["features"]
+
+    def trace(self, labels: Tensor, num_labels: int, count_pixels: bool = False) -> Tensor:
+        """``trace(splats, camera, labels, num_labels, near)``: sparse COO [N, T], coalesced."""
+        from .kernels.coalesce import coalesce_triplets
+        from .kernels.trace import trace_triplets
+
+        labels = _check_labels(labels, self.camera, num_labels)
+        with torch.no_grad():
+            rows, cols, w = trace_triplets(self.proj, self.camera.width, self.camera.height, labels, self.near,
+                                           count_pixels=count_pixels, binning=self.binning)
+        rows, cols, w, _ = coalesce_triplets(rows, cols, w, self.seen.shape[0])
+        idx = torch.from_numpy(np.stack([self.seen[rows], cols]))
+        return torch.sparse_coo_tensor(idx, torch.from_numpy(w), (self.num_splats, num_labels),
+                                       check_invariants=False, is_coalesced=True)

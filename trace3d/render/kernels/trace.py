@@ -265,15 +265,17 @@ TRACE_BATCH_SLOTS = 1 << 22
 
 
 def trace_triplets(proj: Projected, width: int, height: int, labels: Tensor, near: float = 0.01,
-                   batch_slots: int = TRACE_BATCH_SLOTS, count_pixels: bool = False
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   batch_slots: int = TRACE_BATCH_SLOTS, count_pixels: bool = False,
+                   binning: Binning | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """GIT weights of one view as the kernel gives them: rows [E] int64 (splat), cols [E] int64
     (label), weights [E] float32, non-zero only, in tile order; a (row, col) may repeat across tiles.
 
     Tiles are traced in batches whose worst case (tile entries x distinct labels) stays under
-    ``batch_slots``, so memory is bounded by one batch plus the non-zero output.
+    ``batch_slots``, so memory is bounded by one batch plus the non-zero output. ``binning``: the
+    projection's tile lists when the caller has them (:class:`trace3d.render.core.FrozenView`).
     """
-    binning = Binning(proj, width, height)
+    if binning is None:
+        binning = Binning(proj, width, height)
     geom = _geom_array(pack_geometry(proj))
     lab = np.ascontiguousarray(labels.detach().cpu().numpy().astype(np.int64))
     n_local = trace_label_counts(binning.offsets, binning.width, binning.height, binning.tiles_x, lab)
