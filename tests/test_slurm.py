@@ -120,30 +120,26 @@ def _digests(results: Path) -> dict[str, str]:
             for p in sorted(results.rglob("*")) if p.is_file()}
 
 
-def _planned_resources(dry_run: str) -> dict[str, tuple[int, int, int]]:
-    """rule -> (threads, mem_mb, runtime minutes) of every job a dry run with the profile lists."""
-    plan = {}
-    for block in re.split(r"\n(?=\[[^\n]*\]\n(?:local)?rule )", dry_run):
-        head = re.search(r"^(?:local)?rule (\w+):", block, flags=re.M)
-        resources = re.search(r"^\s+resources: (.*)$", block, flags=re.M)
-        if not head or not resources:
-            continue
-        threads = re.search(r"^\s+threads: (\d+)", block, flags=re.M)
-        mem = re.search(r"\bmem_mb=(\d+)", resources.group(1))
-        runtime = re.search(r"\bruntime=(\d+)", resources.group(1))
-        plan[head.group(1)] = (int(threads.group(1)) if threads else 1, int(mem.group(1)), int(runtime.group(1)))
-    return plan
-
-
-def _threads_by_rule(log: str) -> dict[str, int]:
-    """rule -> threads of every job a Snakemake log lists (no ``threads:`` line: 1)."""
-    out = {}
+def _job_blocks(log: str):
+    """(rule, threads, block) of every job a Snakemake log lists (no ``threads:`` line: 1)."""
     for block in re.split(r"\n(?=\[[^\n]*\]\n(?:local)?rule )", log):
         head = re.search(r"^(?:local)?rule (\w+):", block, flags=re.M)
         if head:
             threads = re.search(r"^\s+threads: (\d+)", block, flags=re.M)
-            out[head.group(1)] = int(threads.group(1)) if threads else 1
-    return out
+            yield head.group(1), int(threads.group(1)) if threads else 1, block
+
+
+def _planned_resources(dry_run: str) -> dict[str, tuple[int, int, int]]:
+    """rule -> (threads, mem_mb, runtime minutes) of every job a dry run with the profile lists."""
+    plan = {}
+    for rule, threads, block in _job_blocks(dry_run):
+        resources = re.search(r"^\s+resources: (.*)$", block, flags=re.M)
+        if not resources:
+            continue
+        mem = re.search(r"\bmem_mb=(\d+)", resources.group(1))
+        runtime = re.search(r"\bruntime=(\d+)", resources.group(1))
+        plan[rule] = (threads, int(mem.group(1)), int(runtime.group(1)))
+    return plan
 
 
 def _minutes(limit: str) -> int:
@@ -232,7 +228,7 @@ def _check_against_local(local, local_run, local_log, cluster, elsewhere, env_lo
     assert by_rule["refine"]["cpus"] == "2"
     # the local run fitted and refined on 1 thread: the equal files below are also the training's
     # independence of the thread count, on the real steps
-    local_threads = _threads_by_rule(local_log.read_text())
+    local_threads = {rule: threads for rule, threads, _ in _job_blocks(local_log.read_text())}
     assert local_threads["gaussians"] == 1 and local_threads["refine"] == 1, local_threads
 
     # the same files, byte for byte, but for wall-clock times

@@ -202,13 +202,20 @@ def trace(splats: Splats, camera: Camera, labels: Tensor, num_labels: int, near:
             proj = project(splats, camera, near)
         dense = _trace_by_backward(proj, camera, labels, num_labels, near, "reference")
         return dense.to_sparse().coalesce()
+    seen, rows, cols, w = traced_triplets(splats, camera, labels, near, count_pixels)
+    return _coalesced_weights(seen, rows, cols, w, n, num_labels).to(splats.means.device)
+
+
+def _coalesced_weights(seen: np.ndarray, rows: np.ndarray, cols: np.ndarray, w: np.ndarray, n: int,
+                       num_labels: int) -> Tensor:
+    """The trace kernel's triplets (rows: positions in ``seen``, the ascending splats the view sees)
+    summed per (splat, label) into a coalesced sparse COO [n, num_labels] tensor (CPU)."""
     from .kernels.coalesce import coalesce_triplets
 
-    seen, rows, cols, w = traced_triplets(splats, camera, labels, near, count_pixels)
     rows, cols, w, _ = coalesce_triplets(rows, cols, w, seen.shape[0])
     idx = torch.from_numpy(np.stack([seen[rows], cols]))  # seen is ascending: still sorted
     return torch.sparse_coo_tensor(idx, torch.from_numpy(w), (n, num_labels), check_invariants=False,
-                                   is_coalesced=True).to(splats.means.device)
+                                   is_coalesced=True)
 
 
 def traced_triplets(splats: Splats, camera: Camera, labels: Tensor, near: float = 0.01, count_pixels: bool = False
@@ -373,14 +380,10 @@ class FrozenView:
 
     def trace(self, labels: Tensor, num_labels: int, count_pixels: bool = False) -> Tensor:
         """``trace(splats, camera, labels, num_labels, near)``: sparse COO [N, T], coalesced."""
-        from .kernels.coalesce import coalesce_triplets
         from .kernels.trace import trace_triplets
 
         labels = _check_labels(labels, self.camera, num_labels)
         with torch.no_grad():
             rows, cols, w = trace_triplets(self.proj, self.camera.width, self.camera.height, labels, self.near,
                                            count_pixels=count_pixels, binning=self.binning)
-        rows, cols, w, _ = coalesce_triplets(rows, cols, w, self.seen.shape[0])
-        idx = torch.from_numpy(np.stack([self.seen[rows], cols]))
-        return torch.sparse_coo_tensor(idx, torch.from_numpy(w), (self.num_splats, num_labels),
-                                       check_invariants=False, is_coalesced=True)
+        return _coalesced_weights(self.seen, rows, cols, w, self.num_splats, num_labels)

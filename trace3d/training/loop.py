@@ -193,8 +193,8 @@ def fit(
     np.finfo(np.float32), np.finfo(np.float64)  # compute numpy's float limits before flushing denormals
     flushing = params.flush_denormals and torch.set_flush_denormal(True)
     try:
-        # Adam and the default density control run with the process's torch threads (``--threads``),
-        # the rest of the loop with params.torch_threads (docs/performance.md)
+        # the default density control runs with the process's torch threads (``--threads``), Adam on
+        # optimizer.ADAM_THREADS, the rest of the loop with params.torch_threads (docs/performance.md)
         bulk_threads = torch.get_num_threads()
         with torch_threads(params.torch_threads), gradient_buffers(params.grad_buffers):
             return _fit_loop(model, cameras, images, params, extent, progress, device, callback, strategy, lrs, desc,
