@@ -310,7 +310,8 @@ def quoted_params(step):
 VARIANT_DEFAULTS = _steps.variant_defaults()  # trace3d.steps.Variant
 # merge_candidates: which patch pairs of a view the merge compares: those inside a common coarser mask
 # (the supplementary and the released code; folder merge-<preset>) or all pairs (the paper's main text;
-# folder merge-<preset>-all, refine-<preset>-mergedall).
+# folder merge-<preset>-all, refine-<preset>-mergedall); merge_method: the paper's vote or the hierarchical
+# merge (beyond the paper; folder merge-<preset>-hier, refine-<preset>-mergedhier).
 VARIANTS = {name: {**VARIANT_DEFAULTS, **(v or {})} for name, v in config.get("variants", {"full": {}}).items()}
 # A variant's own `lift:` settings (e.g. the self-prompting prompt source) join the scene's lift params.
 for _name, _v in VARIANTS.items():
@@ -364,7 +365,7 @@ def split_run(run):
 
 wildcard_constraints:
     preset="paper|official",
-    masks="merged|mergedall|patches",
+    masks="merged|mergedall|mergedhier|patches",
     variant=f"({'|'.join(VARIANTS)})" r"(\.s[0-9]+)?",
 
 
@@ -400,8 +401,25 @@ def labels_dir(scene, v):
     return f"{RESULTS}/{scene}/patches"
 
 
+# A merge flavour other than the preset's own is a folder of its own, merge-<preset>-<flavour> (refine:
+# refine-<preset>-merged<flavour>), with these keys over the scene's merge parameters:
+MERGE_FLAVOURS = {
+    "all": {"candidates": "all_pairs"},  # variant merge_candidates: all_pairs (the paper's main text)
+    "hier": {"method": "hierarchical"},  # variant merge_method: hierarchical (beyond the paper)
+}
+
+
+def merge_flavour(v):
+    """The variant's merge flavour ('' for the preset's own merge)."""
+    if v.get("merge_method") == "hierarchical":
+        return "hier"
+    return "all" if v.get("merge_candidates") == "all_pairs" else ""
+
+
 def _all(v):
-    return "-all" if v.get("merge_candidates") == "all_pairs" else ""
+    """The merge folder's suffix of a variant ('', '-all', '-hier')."""
+    flavour = merge_flavour(v)
+    return f"-{flavour}" if flavour else ""
 
 
 def gaussians_dir(scene, v):
@@ -429,10 +447,9 @@ def preset_params(step):
 
 
 def refine_labels(wildcards):
-    if wildcards.masks == "merged":
-        return f"{RESULTS}/{wildcards.scene}/merge-{wildcards.preset}"
-    if wildcards.masks == "mergedall":
-        return f"{RESULTS}/{wildcards.scene}/merge-{wildcards.preset}-all"
+    if wildcards.masks.startswith("merged"):
+        flavour = wildcards.masks[len("merged"):]
+        return f"{RESULTS}/{wildcards.scene}/merge-{wildcards.preset}" + (f"-{flavour}" if flavour else "")
     return f"{RESULTS}/{wildcards.scene}/patches"
 
 
@@ -441,12 +458,16 @@ def refine_labels_arg(wildcards):
     return f"{folder}/instances" if wildcards.masks != "patches" else folder
 
 
-def merge_all_params(wildcards):
-    """The merge step's parameters for merge-<preset>-all: the preset's, comparing all pairs of a view."""
-    merged = json.loads(step_params(wildcards.scene, "merge"))
-    merged.setdefault("preset", wildcards.preset)
-    merged["candidates"] = "all_pairs"
-    return shlex.quote(json.dumps(merged, sort_keys=True))
+def merge_flavour_params(flavour):
+    """A params function for merge-<preset>-<flavour>: the preset's merge parameters with the flavour's keys."""
+
+    def inner(wildcards):
+        merged = json.loads(step_params(wildcards.scene, "merge"))
+        merged.setdefault("preset", wildcards.preset)
+        merged.update(MERGE_FLAVOURS[flavour])
+        return shlex.quote(json.dumps(merged, sort_keys=True))
+
+    return inner
 
 
 # The full method's (first variant with both stages on, else the first) merge and refine figures per scene.

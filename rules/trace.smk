@@ -53,17 +53,30 @@ rule merge:
         " --out {output} --params {params.p} > {log} 2>&1"
 
 
-# The same merge comparing every pair of patches of a view (variant merge_candidates: all_pairs).
+# The same merge comparing every pair of patches of a view (variant merge_candidates: all_pairs), and the
+# hierarchical merge (variant merge_method: hierarchical): rules/common.smk's MERGE_FLAVOURS.
 use rule merge as merge_all with:
     output:
         directory(f"{RESULTS}/{{scene}}/merge-{{preset}}-all"),
     params:
-        p=merge_all_params,
+        p=merge_flavour_params("all"),
         code=step_code("merge"),
     log:
         f"{RESULTS}/logs/{{scene}}/merge-{{preset}}-all.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{scene}}/merge-{{preset}}-all.tsv"
+
+
+use rule merge as merge_hier with:
+    output:
+        directory(f"{RESULTS}/{{scene}}/merge-{{preset}}-hier"),
+    params:
+        p=merge_flavour_params("hier"),
+        code=step_code("merge"),
+    log:
+        f"{RESULTS}/logs/{{scene}}/merge-{{preset}}-hier.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{scene}}/merge-{{preset}}-hier.tsv"
 
 
 rule refine:

@@ -52,6 +52,7 @@ from typing import Literal, Sequence
 import numpy as np
 from numba import njit, prange
 
+from .consistency import average_linkage, comembership, mask_vote
 from .git import ROW_BLOCK_ENTRIES, GITStats, GITVisible
 
 log = logging.getLogger(__name__)
@@ -67,6 +68,10 @@ PRESET_VALUES = {
     "official": {"threshold": 0.4, "min_visibility": 0.0, "uncovered": "exclude", "min_gaussians": 100,
                  "min_view_share": 0.2, "min_views": 2, "min_gaussian_views": 3},
 }
+
+# The hierarchical method's threshold on its mask-level similarity, chosen on the development rooms
+# (config/dev.yaml) before it was scored anywhere else (docs/tracing.md, "The hierarchical merge").
+HIERARCHICAL_THRESHOLD = 0.5
 
 
 @dataclass
@@ -89,6 +94,10 @@ class MergeParams:
     min_views: a pair with fewer voting views is not merged (official 2; paper 1).
     min_gaussian_views: a Gaussian votes only with a vote in at least this many of the pair's
         voting views (official 3; paper 0).
+    method: ``vote`` (both presets): the paper's argmax-patch vote, pairs joined by union-find;
+        ``hierarchical`` (beyond the paper, :mod:`.consistency`): the mask-level vote (do the two
+        patches' Gaussians lie under a common mask of the other views), every pair of the view
+        compared, groups by average linkage; ``candidates`` and the minimum-support keys do not apply.
     association_share: the mutual-majority share that links instances across views.
     ground_truth_level: level of the ground-truth hierarchy the ``merge.json`` quality figures use.
     """
@@ -102,11 +111,16 @@ class MergeParams:
     min_view_share: float | None = None
     min_views: int | None = None
     min_gaussian_views: int | None = None
+    method: Literal["vote", "hierarchical"] = "vote"
     association_share: float = 0.5
     ground_truth_level: Literal["part", "object", "group"] = "object"
     preview_views: int = 4
 
     def __post_init__(self) -> None:
+        if self.method not in ("vote", "hierarchical"):
+            raise ValueError(f"method must be vote or hierarchical, got {self.method!r}")
+        if self.method == "hierarchical" and self.threshold is None:
+            self.threshold = HIERARCHICAL_THRESHOLD
         for key, value in PRESET_VALUES[self.preset].items():
             if getattr(self, key) is None:
                 setattr(self, key, value)
@@ -808,7 +822,15 @@ def merge_all(stats: GITStats | GITVisible, hierarchies: Sequence,
     visible = stats.visible(params.min_visibility)
     every = all_source_histograms(stats.label, visible, num_source, num_labels)
     rule = params.rule
+    if params.method == "hierarchical":
+        comember = [comembership(h, num_labels) for h in hierarchies]
     for v, (hierarchy, hist) in enumerate(zip(hierarchies, every)):
+        if params.method == "hierarchical":
+            pairs = candidate_pairs(hierarchy, "all_pairs")
+            sims, omega = mask_vote(hist, pairs, comember, v)
+            lut = average_linkage(hierarchy.num_patches, pairs, sims, omega, params.threshold)
+            merges.append(ViewMerge(stats.frames[v], lut, pairs, sims, omega, sims > params.threshold))
+            continue
         pairs = candidate_pairs(hierarchy, params.candidates)
         merges.append(merge_view(stats, v, hierarchy.num_patches, pairs, params.threshold, params.min_visibility,
                                  hist=hist, rule=rule, visible=visible))
