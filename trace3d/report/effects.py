@@ -54,6 +54,8 @@ EFFECTS = (
     ("both: full - both_off", "full", "both_off"),
     ("merge, all pairs (refine on): full_all - no_merge", "full_all", "no_merge"),
     ("all pairs vs coarser mask: full_all - full", "full_all", "full"),
+    ("hierarchical merge (refine on): full_hier - no_merge", "full_hier", "no_merge"),
+    ("hierarchical vs the paper's merge: full_hier - full", "full_hier", "full"),
 )
 
 
