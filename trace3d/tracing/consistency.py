@@ -50,7 +50,17 @@ def comembership(hierarchy, num_labels: int) -> np.ndarray:
     return out[:num_labels, :num_labels] if size > num_labels else out
 
 
-def mask_vote(hist: np.ndarray, pairs: np.ndarray, comember: Sequence[np.ndarray],
+def stack_comembership(comember: Sequence[np.ndarray], num_labels: int) -> np.ndarray:
+    """[L, T - 1, T - 1] float64: every view's :func:`comembership` over labels 1..T-1 (label 0 has no
+    vote), padded with zeros to ``num_labels`` = T (a view's labels beyond its array share no mask)."""
+    out = np.zeros((len(comember), max(0, num_labels - 1), max(0, num_labels - 1)))
+    for v, c in enumerate(comember):
+        t = min(num_labels, c.shape[0])
+        out[v, :t - 1, :t - 1] = c[1:t, 1:t]
+    return out
+
+
+def mask_vote(hist: np.ndarray, pairs: np.ndarray, comember: np.ndarray | Sequence[np.ndarray],
               source_view: int) -> tuple[np.ndarray, np.ndarray]:
     """Mask-level similarities of patch ``pairs`` of one source view (factored form).
 
@@ -58,8 +68,8 @@ def mask_vote(hist: np.ndarray, pairs: np.ndarray, comember: Sequence[np.ndarray
         hist: [A, L, T] int label histograms of each source patch's Gaussians per view (the merge's
             :func:`.merge.all_source_histograms`; the source view's slice is zero).
         pairs: [K, 2] source patch ids.
-        comember: L arrays [T_v, T_v] bool, :func:`comembership` of each view (T_v <= T; labels of
-            a view beyond its array share no mask).
+        comember: [L, T - 1, T - 1] (:func:`stack_comembership`), or L arrays [T_v, T_v] bool
+            (:func:`comembership` of each view).
         source_view: v0, left out of the vote.
     Returns:
         sim [K] float64 (0 where no view votes) and |Omega| [K] int64, the (Gaussian, Gaussian,
@@ -67,25 +77,18 @@ def mask_vote(hist: np.ndarray, pairs: np.ndarray, comember: Sequence[np.ndarray
     """
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
     num_source, views, num_labels = hist.shape
-    same = np.zeros((num_source, num_source))
-    total = np.zeros((num_source, num_source))
-    for v in range(views):
-        if v == source_view:
-            continue
-        h = hist[:, v, 1:].astype(np.float64)  # [A, T - 1]: label 0 has no vote
-        n = h.sum(axis=1)
-        if not n.any():
-            continue
-        c = np.zeros((num_labels, num_labels))
-        t = min(num_labels, comember[v].shape[0])
-        c[:t, :t] = comember[v][:t, :t]
-        same += h @ c[1:, 1:] @ h.T
-        total += np.outer(n, n)
+    if not isinstance(comember, np.ndarray) or comember.ndim != 3:
+        comember = stack_comembership(comember, num_labels)
     if len(pairs) == 0:
         return np.zeros(0), np.zeros(0, np.int64)
-    s = same[pairs[:, 0], pairs[:, 1]]
-    o = total[pairs[:, 0], pairs[:, 1]]
-    return np.where(o > 0, s / np.maximum(o, 1), 0.0), o.astype(np.int64)
+    h = hist[:, :, 1:].astype(np.float64)  # [A, L, T - 1]: label 0 has no vote
+    h[:, source_view] = 0.0
+    n = h.sum(axis=2)  # [A, L]
+    spread = np.einsum("avt,vts->avs", h, comember)  # [A, L, T - 1]
+    a, b = pairs[:, 0], pairs[:, 1]
+    same = np.einsum("kvs,kvs->k", spread[a], h[b])
+    total = np.einsum("kv,kv->k", n[a], n[b])
+    return np.where(total > 0, same / np.maximum(total, 1), 0.0), total.astype(np.int64)
 
 
 def mask_vote_bruteforce(labels: np.ndarray, visible: np.ndarray, comember: Sequence[np.ndarray],

@@ -52,7 +52,7 @@ from typing import Literal, Sequence
 import numpy as np
 from numba import njit, prange
 
-from .consistency import average_linkage, comembership, mask_vote
+from .consistency import average_linkage, comembership, mask_vote, stack_comembership
 from .git import ROW_BLOCK_ENTRIES, GITStats, GITVisible
 
 log = logging.getLogger(__name__)
@@ -823,7 +823,7 @@ def merge_all(stats: GITStats | GITVisible, hierarchies: Sequence,
     every = all_source_histograms(stats.label, visible, num_source, num_labels)
     rule = params.rule
     if params.method == "hierarchical":
-        comember = [comembership(h, num_labels) for h in hierarchies]
+        comember = stack_comembership([comembership(h, num_labels) for h in hierarchies], num_labels)
     for v, (hierarchy, hist) in enumerate(zip(hierarchies, every)):
         if params.method == "hierarchical":
             pairs = candidate_pairs(hierarchy, "all_pairs")
