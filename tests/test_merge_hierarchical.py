@@ -30,12 +30,14 @@ def hierarchy(masks: list[list[int]]) -> PatchHierarchy:
 def test_comembership_is_shared_masks_and_the_diagonal():
     # patches 1, 2 under mask 0 (a whole); patch 3 alone in mask 1; patch 4 in no mask but its own 2
     c = comembership(hierarchy([[0], [0], [1], [2]]), 6)
-    assert c.shape == (6, 6)
-    assert c[1, 2] and c[2, 1] and c[1, 1] and c[4, 4]
+    assert c.shape == (6, 6) and c.dtype == np.float64
+    assert c[1, 2] == c[2, 1] == c[1, 1] == c[4, 4] == 1.0
     assert not c[1, 3] and not c[3, 4] and not c[0].any() and not c[:, 0].any() and not c[5].any()
+    half = comembership(hierarchy([[0], [0], [1], [2]]), 6, mask_weight=0.25)
+    assert half[1, 2] == 0.25 and half[1, 1] == 1.0 and half[1, 3] == 0.0
 
 
-def _random_case(seed):
+def _random_case(seed, weight=1.0):
     rng = np.random.default_rng(seed)
     n, views, labels_per_view = 60, 5, 5
     labels = rng.integers(-1, labels_per_view, size=(n, views)).astype(np.int32)
@@ -45,13 +47,13 @@ def _random_case(seed):
         masks = [sorted(set(rng.choice(4, size=rng.integers(1, 3), replace=False).tolist()))
                  for _ in range(labels_per_view - 1)]
         hierarchies.append(hierarchy(masks))
-    comember = [comembership(h, labels_per_view) for h in hierarchies]
+    comember = [comembership(h, labels_per_view, weight) for h in hierarchies]
     return labels, visible, comember
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_mask_vote_equals_the_literal_pair_loop(seed):
-    labels, visible, comember = _random_case(seed)
+@pytest.mark.parametrize("seed,weight", [(0, 1.0), (1, 0.4), (2, 0.75)])
+def test_mask_vote_equals_the_literal_pair_loop(seed, weight):
+    labels, visible, comember = _random_case(seed, weight)
     for v0 in range(labels.shape[1]):
         hist = source_histograms(labels, visible, v0, 5, 5)
         pairs = np.array([[a, b] for a in range(5) for b in range(a + 1, 5)])
@@ -62,9 +64,12 @@ def test_mask_vote_equals_the_literal_pair_loop(seed):
             assert s == pytest.approx(ref, abs=1e-12)
 
 
-def test_identity_comembership_is_the_papers_vote():
+def test_mask_weight_zero_is_the_papers_vote():
     labels, visible, _ = _random_case(3)
-    identity = [np.diag(np.r_[False, np.ones(4, bool)]) for _ in range(labels.shape[1])]
+    rng = np.random.default_rng(3)
+    views = [hierarchy([[int(m)] for m in rng.integers(0, 2, size=4)]) for _ in range(labels.shape[1])]
+    identity = [comembership(h, 5, mask_weight=0.0) for h in views]
+    assert not (identity[0] - np.diag(np.r_[0.0, np.ones(4)])).any()
     from trace3d.tracing.merge import VoteRule, vote
     hist = source_histograms(labels, visible, 0, 5, 5)
     pairs = np.array([[1, 2], [1, 3], [2, 4], [3, 4]])

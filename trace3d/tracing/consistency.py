@@ -34,25 +34,25 @@ from typing import Sequence
 import numpy as np
 
 
-def comembership(hierarchy, num_labels: int) -> np.ndarray:
-    """[T, T] bool co-membership of one view's patches (T = ``num_labels``, padded with False):
-    entry (l, l') is True when patches l and l' lie under a common mask of the view or l == l'
-    (l, l' >= 1); row and column 0 (uncovered pixels) are False."""
+def comembership(hierarchy, num_labels: int, mask_weight: float = 1.0) -> np.ndarray:
+    """[T, T] float64 co-membership of one view's patches (T = ``num_labels``, padded with zeros):
+    1 where l == l' (the same patch), ``mask_weight`` where patches l != l' lie under a common mask of
+    the view, 0 otherwise (l, l' >= 1); row and column 0 (uncovered pixels) are 0."""
     size = max(int(num_labels), hierarchy.num_patches + 1)
     member = hierarchy.membership().astype(np.int64)  # [P + 1, M]
-    out = np.zeros((size, size), bool)
+    out = np.zeros((size, size))
     p = hierarchy.num_patches + 1
-    out[:p, :p] = (member @ member.T) > 0
+    out[:p, :p] = np.where((member @ member.T) > 0, float(mask_weight), 0.0)
     idx = np.arange(1, p)
-    out[idx, idx] = True
-    out[0, :] = False
-    out[:, 0] = False
-    return out[:num_labels, :num_labels] if size > num_labels else out
+    out[idx, idx] = 1.0
+    out[0, :] = 0.0
+    out[:, 0] = 0.0
+    return out[:num_labels, :num_labels]
 
 
 def stack_comembership(comember: Sequence[np.ndarray], num_labels: int) -> np.ndarray:
     """[L, T - 1, T - 1] float64: every view's :func:`comembership` over labels 1..T-1 (label 0 has no
-    vote), padded with zeros to ``num_labels`` = T (a view's labels beyond its array share no mask)."""
+    vote), padded with zeros to ``num_labels`` = T (a view's labels beyond its array share nothing)."""
     out = np.zeros((len(comember), max(0, num_labels - 1), max(0, num_labels - 1)))
     for v, c in enumerate(comember):
         t = min(num_labels, c.shape[0])
@@ -97,7 +97,7 @@ def mask_vote_bruteforce(labels: np.ndarray, visible: np.ndarray, comember: Sequ
     :func:`mask_vote`). labels: [N, L] argmax labels; visible: [N, L] bool."""
     ga = [i for i in range(labels.shape[0]) if visible[i, source_view] and labels[i, source_view] == a]
     gb = [i for i in range(labels.shape[0]) if visible[i, source_view] and labels[i, source_view] == b]
-    same = total = 0
+    same, total = 0.0, 0
     for v in range(labels.shape[1]):
         if v == source_view:
             continue
@@ -111,7 +111,7 @@ def mask_vote_bruteforce(labels: np.ndarray, visible: np.ndarray, comember: Sequ
                     continue
                 total += 1
                 c = comember[v]
-                same += int(li < c.shape[0] and lj < c.shape[0] and bool(c[li, lj]))
+                same += float(c[li, lj]) if li < c.shape[0] and lj < c.shape[0] else 0.0
     return (same / total if total else 0.0), total
 
 

@@ -98,6 +98,8 @@ class MergeParams:
         ``hierarchical`` (beyond the paper, :mod:`.consistency`): the mask-level vote (do the two
         patches' Gaussians lie under a common mask of the other views), every pair of the view
         compared, groups by average linkage; ``candidates`` and the minimum-support keys do not apply.
+    mask_weight: (``hierarchical``) what a common mask of another view counts for, against 1 for the
+        same patch there: 0 is the paper's vote, 1 the plain mask-level vote.
     association_share: the mutual-majority share that links instances across views.
     ground_truth_level: level of the ground-truth hierarchy the ``merge.json`` quality figures use.
     """
@@ -112,6 +114,7 @@ class MergeParams:
     min_views: int | None = None
     min_gaussian_views: int | None = None
     method: Literal["vote", "hierarchical"] = "vote"
+    mask_weight: float = 1.0
     association_share: float = 0.5
     ground_truth_level: Literal["part", "object", "group"] = "object"
     preview_views: int = 4
@@ -119,6 +122,8 @@ class MergeParams:
     def __post_init__(self) -> None:
         if self.method not in ("vote", "hierarchical"):
             raise ValueError(f"method must be vote or hierarchical, got {self.method!r}")
+        if not 0.0 <= self.mask_weight <= 1.0:
+            raise ValueError(f"mask_weight must be in [0, 1], got {self.mask_weight}")
         if self.method == "hierarchical" and self.threshold is None:
             self.threshold = HIERARCHICAL_THRESHOLD
         for key, value in PRESET_VALUES[self.preset].items():
@@ -823,7 +828,8 @@ def merge_all(stats: GITStats | GITVisible, hierarchies: Sequence,
     every = all_source_histograms(stats.label, visible, num_source, num_labels)
     rule = params.rule
     if params.method == "hierarchical":
-        comember = stack_comembership([comembership(h, num_labels) for h in hierarchies], num_labels)
+        comember = stack_comembership([comembership(h, num_labels, params.mask_weight) for h in hierarchies],
+                                      num_labels)
     for v, (hierarchy, hist) in enumerate(zip(hierarchies, every)):
         if params.method == "hierarchical":
             pairs = candidate_pairs(hierarchy, "all_pairs")
