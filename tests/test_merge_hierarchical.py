@@ -91,7 +91,7 @@ def test_parts_under_a_whole_merge_where_the_patch_vote_cannot():
     views = [parts_only, with_whole, with_whole, with_whole, with_whole, parts_only]
     paper, _ = merge_all(stats, views, MergeParams(candidates="all_pairs"))
     assert paper[0].num_instances == 3  # the argmax-patch vote: a1 and a2 never share a patch
-    merges, luts = merge_all(stats, views, MergeParams(method="hierarchical"))
+    merges, luts = merge_all(stats, views, MergeParams(method="hierarchical", mask_weight=1.0))
     m = merges[0]
     assert m.pairs.tolist() == [[1, 2], [1, 3], [2, 3]]
     np.testing.assert_allclose(m.sims, [0.8, 0.0, 0.0])  # 4 of the 5 other views hold a1, a2 under A's whole
@@ -99,7 +99,7 @@ def test_parts_under_a_whole_merge_where_the_patch_vote_cannot():
     assert merges[1].sims[0] == pytest.approx(0.6) and merges[1].num_instances == 2
     assert luts[0][m.lut[1]] == luts[1][merges[1].lut[1]]  # A has one id in views 0 and 1
     # a threshold above the share of views with the whole keeps the parts apart
-    apart, _ = merge_all(stats, views, MergeParams(method="hierarchical", threshold=0.8))
+    apart, _ = merge_all(stats, views, MergeParams(method="hierarchical", mask_weight=1.0, threshold=0.8))
     assert apart[0].num_instances == 3
 
 
@@ -120,4 +120,5 @@ def test_average_linkage_does_not_chain_where_union_find_does():
 def test_method_is_checked():
     with pytest.raises(ValueError, match="method"):
         MergeParams(method="votes")
-    assert MergeParams(method="hierarchical").threshold == pytest.approx(0.5)
+    assert MergeParams(method="hierarchical").threshold == pytest.approx(0.25)
+    assert MergeParams(method="hierarchical").mask_weight == pytest.approx(0.25)

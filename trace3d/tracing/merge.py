@@ -71,7 +71,7 @@ PRESET_VALUES = {
 
 # The hierarchical method's threshold on its mask-level similarity, chosen on the development rooms
 # (config/dev.yaml) before it was scored anywhere else (docs/tracing.md, "The hierarchical merge").
-HIERARCHICAL_THRESHOLD = 0.5
+HIERARCHICAL_THRESHOLD = 0.25
 
 
 @dataclass
@@ -114,7 +114,7 @@ class MergeParams:
     min_views: int | None = None
     min_gaussian_views: int | None = None
     method: Literal["vote", "hierarchical"] = "vote"
-    mask_weight: float = 1.0
+    mask_weight: float = 0.25
     association_share: float = 0.5
     ground_truth_level: Literal["part", "object", "group"] = "object"
     preview_views: int = 4
