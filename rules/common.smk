@@ -153,7 +153,10 @@ def deep_merge(base, override):
 def scene_config(scene):
     if scene in DERIVED:
         base, masks = DERIVED[scene]
-        return deep_merge(config["scenes"][base], {"masks": masks})
+        extra = {"masks": masks}
+        if scene in FITTED:  # a fit seed: the room's own settings with the fit's seed
+            extra["gaussians"] = {"seed": FITTED[scene]}
+        return deep_merge(config["scenes"][base], extra)
     return config["scenes"][scene]
 
 
@@ -231,9 +234,40 @@ if ORACLE.get("variants"):
         _name = oracle_scene(_base)
         if _name != _base:
             DERIVED[_name] = (_base, {"simulated": {"inconsistency": 0.0}})
+
+# --- fit seeds: `fit_seeds: {values: [0, 1], variants: [...]}` ----------------------------------------
+# The 2DGS fit differs with its seed (and with the CPU kind: docs/performance.md), and PQ^scene per room
+# moves with it, so a fit seed other than 0 is a derived scene `<room>.fit<seed>`: the room's scene and
+# poses, its own masks and patches (the same settings, so the same maps), its own fit with
+# `gaussians: {seed: <seed>}` and everything after it, for the variants `fit_seeds.variants` lists (at
+# every lift seed of `seeds`). The study's intervals then sample rooms x fits x lift seeds.
+FIT_SEEDS = config.get("fit_seeds") or {}
+FITTED = {}  # fit-seed scene -> its fit seed
+for _name in FIT_SEEDS.get("variants", []):
+    if _name not in config.get("variants", {"full": {}}):
+        raise ValueError(f"config fit_seeds.variants: '{_name}' is not one of the config's variants "
+                         f"({', '.join(config.get('variants', {'full': {}}))}).")
+for _base in SCENES:
+    if config["scenes"][_base]["kind"] not in EVAL_KINDS or not FIT_SEEDS.get("variants"):
+        continue
+    for _seed in FIT_SEEDS.get("values", [0]):
+        if int(_seed) < 0:
+            raise ValueError(f"config fit_seeds.values: {_seed} is negative; fit seeds are integers >= 0.")
+        if int(_seed) != 0:
+            DERIVED[f"{_base}.fit{int(_seed)}"] = (_base, {})
+            FITTED[f"{_base}.fit{int(_seed)}"] = int(_seed)
+
+
+def fit_scene(scene):
+    """The scene whose 2DGS fit ``scene`` uses: a fit-seed scene's own, else its base's."""
+    return scene if scene in FITTED else base_scene(scene)
+
+
 ALL_SCENES = SCENES + sorted(DERIVED)
-# scene, poses and gaussians exist for the configured scenes only (derived ones read their base's).
+# scene and poses exist for the configured scenes only (derived ones read their base's); gaussians for
+# them and the fit-seed scenes.
 BASE_SCENE_PATTERN = "|".join(re.escape(s) for s in SCENES)
+FIT_SCENE_PATTERN = "|".join(re.escape(s) for s in SCENES + sorted(FITTED))
 
 
 wildcard_constraints:
@@ -244,7 +278,8 @@ def base_folder(step):
     """An input function: the base scene's ``step`` folder (scene | poses | gaussians)."""
 
     def inner(wildcards):
-        return f"{RESULTS}/{base_scene(wildcards.scene)}/{step}"
+        scene = fit_scene(wildcards.scene) if step == "gaussians" else base_scene(wildcards.scene)
+        return f"{RESULTS}/{scene}/{step}"
 
     return inner
 
@@ -388,6 +423,7 @@ def scene_runs():
                   for r in variant_runs(spec.get("variants", []))]
     if ORACLE.get("variants"):
         pairs += [(oracle_scene(b), f"{r}") for b in EVAL_SCENES for r in variant_runs(ORACLE["variants"])]
+    pairs += [(s, r) for s in FITTED for r in variant_runs(FIT_SEEDS.get("variants", []))]
     return sorted(set(pairs))
 
 
@@ -427,7 +463,7 @@ def gaussians_dir(scene, v):
     if v["density_control"]:
         masks = f"merged{_all(v).lstrip('-')}" if v["consistent_masks"] else "patches"
         return f"{RESULTS}/{scene}/refine-{v['preset']}-{masks}"
-    return f"{RESULTS}/{base_scene(scene)}/gaussians"
+    return f"{RESULTS}/{fit_scene(scene)}/gaussians"
 
 
 def variant_outputs(scene, v):
@@ -541,15 +577,15 @@ def effects_spec():
         base = base_scene(scene)
         if base not in EVAL_SCENES:
             continue
-        if scene == base:
+        if scene == base or scene in FITTED:
             masks = "default"
         elif ORACLE.get("variants") and scene == oracle_scene(base) and split_run(run)[0] in ORACLE["variants"]:
             masks = "oracle"
         else:
             masks = scene.split("@", 1)[1]
         name, seed = split_run(run)
-        runs.append({"room": base, "masks": masks, "variant": name, "seed": seed,
+        runs.append({"room": base, "masks": masks, "variant": name, "seed": seed, "fit": FITTED.get(scene, 0),
                      "eval": f"{RESULTS}/{scene}/{run}/eval"})
-    if not (MASK_MODELS or ORACLE.get("variants") or SEEDS.get("variants")):
+    if not (MASK_MODELS or ORACLE.get("variants") or SEEDS.get("variants") or FITTED):
         runs = []
     return {"runs": runs, "oracle": list(ORACLE.get("variants", [])), "raw": ORACLE.get("raw", "both_off")}

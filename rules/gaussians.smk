@@ -3,10 +3,10 @@
 
 rule gaussians:
     wildcard_constraints:
-        scene=BASE_SCENE_PATTERN,
+        scene=FIT_SCENE_PATTERN,  # the configured scenes and their fit seeds (<room>.fit<seed>)
     input:
-        scene=f"{RESULTS}/{{scene}}/scene",
-        poses=f"{RESULTS}/{{scene}}/poses",
+        scene=base_folder("scene"),
+        poses=base_folder("poses"),
     output:
         directory(f"{RESULTS}/{{scene}}/gaussians"),
     params:

@@ -346,3 +346,47 @@ def test_all_pairs_variant_has_its_own_merge_and_refine(tmp_path):
             in lifts["results/a/full_all/lift"])
     assert "--labels results/a/merge-paper-all/instances " in lifts["results/a/all_no_refine/lift"]
     assert "--gaussians results/a/refine-paper-merged " in lifts["results/a/full/lift"]
+
+
+def test_hierarchical_variant_has_its_own_merge_and_refine(tmp_path):
+    """merge_method: hierarchical runs the merge with method hierarchical into merge-<preset>-hier and refines
+    on those maps, beside the paper's merge."""
+    config = {"scenes": {"a": {"kind": "synthetic"}},
+              "variants": {"full": {}, "full_hier": {"merge_method": "hierarchical"}}}
+    result = run_snakemake(tmp_path, "-n", "-p", "reproduce", config=config)
+    assert result.returncode == 0, result.stderr[-3000:]
+    shells = [line[line.index("trace3d "):] for line in result.stdout.splitlines() if "trace3d --threads" in line]
+    merges = {line.split("--out ")[1].split()[0]: line for line in shells if " merge --scene" in line}
+    assert sorted(merges) == ["results/a/merge-paper", "results/a/merge-paper-hier"]
+    assert '"method": "hierarchical"' in merges["results/a/merge-paper-hier"]
+    assert "hierarchical" not in merges["results/a/merge-paper"]
+    refines = [line for line in shells if " refine --scene" in line]
+    assert any("--labels results/a/merge-paper-hier/instances " in r and "--out results/a/refine-paper-mergedhier "
+               in r for r in refines)
+    lifts = {line.split("--out ")[1].split()[0]: line for line in shells if " lift --scene" in line}
+    assert ("--gaussians results/a/refine-paper-mergedhier --labels results/a/merge-paper-hier/instances "
+            in lifts["results/a/full_hier/lift"])
+
+
+def test_fit_seeds_fit_the_room_again_and_join_the_study(tmp_path):
+    """fit_seeds: a fit seed s > 0 is the derived scene <room>.fit<s>: the room's scene and poses, its own fit
+    with gaussians.seed = s and everything after it, for fit_seeds.variants; the effects spec samples it."""
+    config = {**_study_config(), "fit_seeds": {"values": [0, 3], "variants": ["full", "both_off"]}}
+    result = run_snakemake(tmp_path, "-n", "-p", "reproduce", config=config)
+    assert result.returncode == 0, result.stderr[-3000:]
+    shells = [line[line.index("trace3d "):] for line in result.stdout.splitlines() if "trace3d --threads" in line]
+    fits = {line.split("--out ")[1].split()[0]: line for line in shells if " gaussians --scene" in line}
+    assert sorted(fits) == ["results/a.fit3/gaussians", "results/a/gaussians", "results/b.fit3/gaussians",
+                            "results/b/gaussians"]
+    assert "--scene results/a/scene --poses results/a/poses " in fits["results/a.fit3/gaussians"]
+    assert '"seed": 3' in fits["results/a.fit3/gaussians"] and '"seed"' not in fits["results/a/gaussians"]
+    traces = [line for line in shells if " trace --scene" in line and "results/a.fit3/" in line]
+    assert len(traces) == 1 and "--gaussians results/a.fit3/gaussians " in traces[0]
+    lifts = {line.split("--out ")[1].split()[0]: line for line in shells if " lift --scene" in line}
+    assert "--gaussians results/a.fit3/gaussians " in lifts["results/a.fit3/both_off.s2/lift"]
+    assert "results/a.fit3/sp/lift" not in lifts
+    effects = [line for line in shells if " effects --spec" in line]
+    spec = json.loads(effects[0].split("--spec ")[1].split(" --out")[0].strip("'"))
+    samples = {(r["room"], r["masks"], r["variant"], r["fit"], r["seed"]) for r in spec["runs"]}
+    assert ("a", "default", "full", 3, 2) in samples and ("a", "default", "full", 0, 2) in samples
+    assert not any(r["fit"] == 3 and r["masks"] != "default" for r in spec["runs"])

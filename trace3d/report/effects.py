@@ -8,7 +8,7 @@ Input: a spec, one entry per scored run::
      "oracle": ["both_off"],     # the variants run on exact object masks (masks == "oracle")
      "raw": "both_off"}          # the lower end of the gap
 
-A *sample* is one (room, seed).  For a mask model and a variant, a metric's mean and its 95 %
+A *sample* is one (room, fit seed, lift seed) (``fit`` 0 where a run names none).  For a mask model and a variant, a metric's mean and its 95 %
 confidence interval (Student's t) are over the samples.  The *paired effect* of a stage compares two
 variants on the same samples (e.g. ``full - no_merge``: what merging adds with density control on);
 its interval is the t interval of the paired differences, and ``wins`` counts the samples where the
@@ -89,7 +89,7 @@ def collect(spec: dict) -> pd.DataFrame:
                 raise SceneFormatError(f"{path}: the '{section}' section is missing; is it an evaluate step's "
                                        f"metrics.json?")
         row = {"room": str(run["room"]), "masks": str(run["masks"]), "variant": str(run["variant"]),
-               "seed": int(run["seed"])}
+               "fit": int(run.get("fit", 0)), "seed": int(run["seed"])}
         for name, keys, scale in METRICS:
             value = _lookup(data, keys)
             row[name] = float(value) * scale if isinstance(value, (int, float)) and value is not None else np.nan
@@ -115,10 +115,11 @@ def t_interval(values) -> tuple[float, float, int]:
 
 def _paired(frame: pd.DataFrame, masks: str, a: str, b: str, metric: str,
             b_masks: str | None = None) -> pd.DataFrame:
-    """Samples (room, seed) with both ``a`` under ``masks`` and ``b`` under ``b_masks`` (default the same)."""
-    left = frame[(frame.masks == masks) & (frame.variant == a)][["room", "seed", metric]]
-    right = frame[(frame.masks == (b_masks or masks)) & (frame.variant == b)][["room", "seed", metric]]
-    joined = left.merge(right, on=["room", "seed"], suffixes=("_a", "_b"))
+    """Samples (room, fit, seed) with both ``a`` under ``masks`` and ``b`` under ``b_masks`` (default the same)."""
+    keys = ["room", "fit", "seed"]
+    left = frame[(frame.masks == masks) & (frame.variant == a)][keys + [metric]]
+    right = frame[(frame.masks == (b_masks or masks)) & (frame.variant == b)][keys + [metric]]
+    joined = left.merge(right, on=keys, suffixes=("_a", "_b"))
     return joined.dropna()
 
 
@@ -132,7 +133,7 @@ def summarize(frame: pd.DataFrame, oracle: list[str], raw: str) -> tuple[pd.Data
         for m in metrics:
             mean, half, n = t_interval(group[m])
             row[f"{m} mean"], row[f"{m} ci95"], row[f"{m} n"] = mean, half, n
-            share = math.nan
+            share = share_half = math.nan
             if oracle_variant is not None and masks != "oracle":
                 # per room: the variant's gain over the raw patches (mean over its seeds) and the oracle's
                 # (mean over the oracle's seeds, which may be fewer: the oracle is often run on one seed)
@@ -144,7 +145,9 @@ def summarize(frame: pd.DataFrame, oracle: list[str], raw: str) -> tuple[pd.Data
                 gap = float(room_gap[rooms].mean()) if len(rooms) else math.nan
                 if len(rooms) and gap >= MIN_GAP:
                     share = float(gain[rooms].mean()) / gap
+                    share_half = t_interval(gain[rooms])[1] / gap
             row[f"{m} gap share"] = share
+            row[f"{m} gap share ci95"] = share_half
         rows.append(row)
     summary = pd.DataFrame(rows)
     effects = []
@@ -171,15 +174,18 @@ def _fmt(mean: float, half: float) -> str:
     return f"{mean:.1f}" if not np.isfinite(half) else f"{mean:.1f} ± {half:.1f}"
 
 
-def _share(value: float) -> str:
-    return "–" if not np.isfinite(value) else f"{100 * value:.0f} %"
+def _share(value: float, half: float = math.nan) -> str:
+    if not np.isfinite(value):
+        return "–"
+    return f"{100 * value:.0f} %" if not np.isfinite(half) else f"{100 * value:.0f} ± {100 * half:.0f} %"
 
 
 def markdown(summary: pd.DataFrame, effects: pd.DataFrame, frame: pd.DataFrame) -> str:
     metrics = [m for m, _, _ in METRICS if f"{m} mean" in summary]
     lines = ["**Variants under each mask model**: mean ± half-width of the 95 % confidence interval over "
              "rooms × lift seeds (n samples); *gap* = share of the raw-to-oracle gap the variant closes "
-             "(raw patches without refinement = 0 %, the oracle on exact object masks = 100 %; – where exact "
+             "(raw patches without refinement = 0 %, the oracle on exact object masks = 100 %; ± the 95 % interval of "
+             "the rooms' gains over the raw patches, over the mean gap; – where exact "
              f"masks gain less than {MIN_GAP:g} point over the raw patches: nothing to close).", ""]
     for masks in sorted(summary.masks.unique(), key=lambda m: (m == "oracle", m != "default", m)):
         part = summary[summary.masks == masks]
@@ -191,7 +197,7 @@ def markdown(summary: pd.DataFrame, effects: pd.DataFrame, frame: pd.DataFrame) 
             n = int(max(r[f"{m} n"] for m in metrics))
             cells = [r.variant, str(n)]
             for m in metrics:
-                cells += [_fmt(r[f"{m} mean"], r[f"{m} ci95"]), _share(r[f"{m} gap share"])]
+                cells += [_fmt(r[f"{m} mean"], r[f"{m} ci95"]), _share(r[f"{m} gap share"], r[f"{m} gap share ci95"])]
             lines.append("| " + " | ".join(cells) + " |")
         lines.append("")
     if not effects.empty:
