@@ -5,6 +5,8 @@ Figures (one JSON object):
 - ``trace_over_render``: tracing every training view's patch map / rendering every training view
   (colour, no gradient) — GIT is meant to cost about one render.
 - ``merge_share``: merge seconds (best of 3) / (trace + merge + one refine detection) seconds (goal <= 0.10).
+- ``hierarchical_over_paper``: the hierarchical merge's seconds (``merge: {method: hierarchical}``, best
+  of 3) / the paper merge's (goal <= 2).
 - ``sweep``: trace + merge seconds over random subsets of the Gaussians and of the views, and
   ``scaling_slope``, the least-squares slope of log(time) against log(Gaussians x views) (goal <= 1.1:
   linear), with the slopes along each axis alone.
@@ -62,6 +64,7 @@ def run_bench(room: Path, quick: bool = False) -> dict:
     render_s, _ = _timed(lambda: [render_view(model, c, model.sh_degree, None) for c in train])
     trace_s, stats = _timed(lambda: trace_views(model, train, maps))
     merge_s, (merges, luts) = _timed(lambda: merge_all(stats, hierarchies, params), repeats=3)
+    hier_s, _ = _timed(lambda: merge_all(stats, hierarchies, MergeParams(method="hierarchical")), repeats=3)
     consistent = [lut[m.lut[x]] for x, m, lut in zip(maps, merges, luts)]
 
     def detection():
@@ -75,6 +78,7 @@ def run_bench(room: Path, quick: bool = False) -> dict:
         "render_s": render_s, "trace_s": trace_s, "merge_s": merge_s, "detect_s": detect_s,
         "trace_over_render": trace_s / render_s,
         "merge_share": merge_s / (trace_s + merge_s + detect_s),
+        "hierarchical_merge_s": hier_s, "hierarchical_over_paper": hier_s / merge_s,
     }
     rng = np.random.default_rng(0)
     fractions = (0.25, 0.5, 1.0) if not quick else (0.5, 1.0)
