@@ -539,8 +539,8 @@ def init_from_points(
     logit = math.log(opacity / (1.0 - opacity))
     # On one torch thread, like the model's activations: with two, torch's log of the 80,000 distances of
     # a default room gave the second thread's half other values (up to 170 ulps off) in 1 to 3 processes
-    # in 100 on the 2-core development machine (2026-11-26; docs/performance.md, "Run to run"), so the
-    # same scene and seed started the fit from other scales.
+    # in 100 on a 2-core machine (docs/history/performance.md, "Run to run"), so the same scene and
+    # seed started the fit from other scales.
     with torch_threads(1):
         log_distances = torch.log(distances)
     return GaussianModel(

@@ -109,8 +109,7 @@ class PosesParams:
         depth_points: (dataset mode) total number of depth pixels back-projected into points.
         num_threads: CPU threads for pycolmap (-1 = all cores of ``trace3d --threads``). 1 by default:
             with more threads COLMAP's poses are not reproducible (two runs of the same room with 2
-            threads gave cameras differing at about 1e-5 relative, 2026-11-26; with one, identical
-            files), and every later step inherits the difference. More threads are faster on large
+            threads gave cameras differing at about 1e-5 relative; with one, identical files), and every later step inherits the difference. More threads are faster on large
             captures at that price.
         seed: seed of pycolmap's random number generator (RANSAC, mapping) and of point sampling.
         colmap_log_level: verbosity of pycolmap's own log (written to stderr, the step log).

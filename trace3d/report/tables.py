@@ -161,7 +161,7 @@ def _per_scene_table(name: str, caption: str, scenes: list[str], rows: list[Row]
     scale = {"object_miou": 100.0, "nvs_miou": 100.0, "nvs_macc": 100.0, "psnr": 1.0}
     header = ["Method"] + scenes + [h for h, _, _ in means]
     csv_header = ["method"] + scenes
-    for h, attr, _ in means:
+    for _h, attr, _ in means:
         csv_header += [f"{attr}_mean", f"{attr}_std"]
     text, tex, plain = [], [], []
     for r in rows:
