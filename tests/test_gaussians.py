@@ -393,7 +393,7 @@ def test_activations_do_not_depend_on_the_thread_count():
 
 def test_init_scales_log_runs_on_one_torch_thread(monkeypatch):
     """The initial log-scales come from torch's log on one thread (a two-thread log once gave the
-    second half other values, docs/performance.md, "Run to run"), and the caller's setting stays."""
+    second half other values, docs/history/performance.md, "Run to run"), and the caller's setting stays."""
     calls = []
     real_log = torch.log
 
