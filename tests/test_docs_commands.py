@@ -167,3 +167,28 @@ def test_the_path_check_sees_a_missing_path():
     paths = readme_paths("see [the notes](docs/no-such-page.md) and `config/gone.yaml`; `results/room0/x` is made")
     assert paths == {"docs/no-such-page.md", "config/gone.yaml"}
     assert not any((REPO / p).exists() for p in paths)
+
+
+# ----------------------------------------------------------------------------------------------
+# No dated figures in the library: a date in a docstring or comment goes stale; measurements with
+# their dates belong in docs/history/ (docs/performance.md has the current figures)
+# ----------------------------------------------------------------------------------------------
+
+DATE = re.compile(r"\b20\d\d-[01]\d-[0-3]\d\b")
+# files that still carry one, being changed elsewhere when this check came; remove an entry with its date
+DATED_FOR_NOW = {"trace3d/tracing/merge.py"}
+
+
+def dated_files(root: Path) -> set[str]:
+    return {str(p.relative_to(REPO)) for p in sorted(root.rglob("*.py")) if DATE.search(p.read_text())}
+
+
+def test_no_library_file_carries_a_date():
+    dated = dated_files(REPO / "trace3d")
+    assert dated - DATED_FOR_NOW == set(), "move the dated figures to docs/history/ and say what is true now"
+    assert DATED_FOR_NOW <= dated, f"no date left in {sorted(DATED_FOR_NOW - dated)}: drop it from DATED_FOR_NOW"
+
+
+def test_the_date_check_sees_a_date():
+    assert DATE.search("# 1.3x faster (measured 2026-11-26 on the 2-core machine)")
+    assert not DATE.search("threads: 1  # 2 threads per job; seed 20260 of 2026 rooms")
