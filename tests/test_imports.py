@@ -95,7 +95,8 @@ def _imports() -> dict[str, set[str]]:
                 if module.startswith("trace3d"):
                     targets.add(module)
                     targets.update(f"{module}.{a.name}" for a in node.names
-                                   if (PACKAGE.parent / f"{module}.{a.name}".replace(".", "/")).with_suffix(".py").is_file()
+                                   if (PACKAGE.parent / f"{module}.{a.name}".replace(".", "/"))
+                                   .with_suffix(".py").is_file()
                                    or (PACKAGE.parent / f"{module}.{a.name}".replace(".", "/")).is_dir())
             elif isinstance(node, ast.Import):
                 targets.update(a.name for a in node.names if a.name.startswith("trace3d"))
@@ -133,7 +134,8 @@ def test_kernel_packages_import_only_their_stage_and_the_render_kernels():
         parts = m.split(".")
         if len(parts) > 2 and parts[2] == "kernels":
             wrong = sorted(t for t in targets if _unit(t) not in allowed | {parts[1]}
-                           or (_unit(t) == "render" and parts[1] != "render" and not t.startswith("trace3d.render.kernels")))
+                           or (_unit(t) == "render" and parts[1] != "render"
+                               and not t.startswith("trace3d.render.kernels")))
             if wrong:
                 bad[m] = wrong
     assert bad == {}
