@@ -75,7 +75,8 @@ def collect(results: Path, evals: list[Path] | None = None) -> tuple[list[str], 
             raise SceneFormatError(f"{path}: not valid JSON ({exc}).") from exc
         for key in ("extraction", "nvs"):
             if not isinstance(data.get(key), dict):
-                raise SceneFormatError(f"{path}: the '{key}' section is missing; is it an evaluate step's metrics.json?")
+                raise SceneFormatError(f"{path}: the '{key}' section is missing; "
+                                       f"is it an evaluate step's metrics.json?")
         settings = dict(data.get("variant") or {})
         name = str(settings.pop("variant", variant_dir))
         row = rows.get(name)

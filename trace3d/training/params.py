@@ -132,7 +132,8 @@ class TrainParams:
         for name in ("position_lr_init", "position_lr_final", "feature_lr", "opacity_lr", "scaling_lr",
                      "rotation_lr", "lambda_normal", "lambda_distortion", "densify_grad_threshold",
                      "percent_dense", "opacity_cull", "max_screen_size", "max_world_size", "near",
-                     "opacity_reset_grace", "torch_threads", "densify_from", "densify_until", "normal_from", "distortion_from",
+                     "opacity_reset_grace", "torch_threads", "densify_from", "densify_until", "normal_from",
+                     "distortion_from",
                      "random_init_margin"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
