@@ -36,7 +36,9 @@ test: $(STAMP)
 	$(BIN)/python -m trace3d.warm --jobs $(CORES)
 	$(BIN)/python -m pytest -q -n $(CORES) --dist loadgroup tests
 
+# ruff (its rules in pyproject.toml's [tool.ruff]) over the Python, then Snakemake's own lint of the rules
 lint: $(STAMP)
+	$(BIN)/ruff check .
 	$(BIN)/snakemake --lint
 
 dry-run: $(STAMP)

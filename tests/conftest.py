@@ -8,7 +8,8 @@ imports the test modules, after this file.  An explicit value in the environment
 process of its own that runs this file, with its own temporary folders (``tmp_path``); they share the
 numba cache, which ``python -m trace3d.warm`` fills before pytest starts, so that the workers only
 load kernels (two processes that save different specializations of one kernel at once can leave
-numba's index pointing one of them at the other's machine code: trace3d/warm.py).  The tests that run a whole DAG through Snakemake (each with
+numba's index pointing one of them at the other's machine code: trace3d/warm.py).  The tests that run
+a whole DAG through Snakemake (each with
 ``--cores 2``, as a user's run; the SLURM test's cluster has 2 CPUs) are in the ``xdist_group``
 "whole_dag": one worker runs them one after another while the other runs the rest, so no two of them
 compete for the cores and run into their time limits.  The SLURM test (group "slurm") runs the same

@@ -48,7 +48,8 @@ def test_bench_fit_phases_add_up_and_instrumentation_is_removed(tmp_path):
     for suffix in ("", "_geometry"):  # features only (lifting's frozen geometry), and with the geometry
         ch = out["channels"]
         assert 0 < ch[f"fwd_bwd_ms_16{suffix}"] < 60_000 and 0 < ch[f"fwd_bwd_ms_3{suffix}"] < 60_000
-        assert ch[f"ratio_16_over_3{suffix}"] == pytest.approx(ch[f"fwd_bwd_ms_16{suffix}"] / ch[f"fwd_bwd_ms_3{suffix}"])
+        assert ch[f"ratio_16_over_3{suffix}"] == pytest.approx(
+            ch[f"fwd_bwd_ms_16{suffix}"] / ch[f"fwd_bwd_ms_3{suffix}"])
         # 16 channels cost more than 3 but not unboundedly more (the same pairs, 19 blended values against 6)
         assert 0.3 < ch[f"ratio_16_over_3{suffix}"] < 20
     # cores busy: CPU time over wall time in the same spans, at most the machine's cores (+ timer slack)
@@ -98,7 +99,8 @@ def test_fit_sweep_merge_keeps_rows_in_order_and_names_a_bad_file(tmp_path):
     a, b = tmp_path / "a.json", tmp_path / "b.json"
     a.write_text(json.dumps({"rows": [row, {**row, "schedule_scale": 0.2, "iterations": 60, "test_psnr": 22.0,
                                                      "minutes": 2.0}], "load_average": [1.0, 1.0, 1.0]}))
-    b.write_text(json.dumps({"rows": [{**row, "max_gaussians": 20, "test_psnr": 21.0}], "load_average": [2.0, 2.0, 2.0]}))
+    b.write_text(json.dumps({"rows": [{**row, "max_gaussians": 20, "test_psnr": 21.0}],
+                             "load_average": [2.0, 2.0, 2.0]}))
     merged = bench.merge_sweeps([a, b], tmp_path / "m.png")
     assert [(r["max_gaussians"], r["schedule_scale"]) for r in merged["rows"]] == [(10, 0.1), (10, 0.2), (20, 0.1)]
     assert [r["load_average"][0] for r in merged["rows"]] == [1.0, 1.0, 2.0]
@@ -207,6 +209,9 @@ def test_synthetic_bench_reports_its_figures():
                            "numba_threads", "load_average_1min"}
     assert result["views"] == 8 and result["resolution"] == [160, 120] and result["supersample"] >= 1
     assert result["ms_per_view"] == pytest.approx(1000 * result["total_s"] / 8, abs=0.1)  # both rounded
-    assert 0 < result["total_s"] < 600 and result["compile_s"] >= 0 and result["cpu_s"] >= 0
+    # the warm-up renders one small view (compiling or loading the ray caster), the generation works on
+    # every thread it has: CPU seconds are positive and at most the wall time on every core
+    assert 0 < result["total_s"] < 600 and 0 < result["compile_s"] < 600
+    assert 0 < result["cpu_s"] <= result["total_s"] * (os.cpu_count() or 1) + 0.01
     assert result["numba_threads"] >= 1
     json.dumps(result)

@@ -48,7 +48,8 @@ def _env_without_target() -> dict:
 def test_cli_sets_the_target_before_numba_loads():
     script = ("import os, sys; from trace3d import cli; sys.argv = ['trace3d', '--help']\n"
               "try:\n    cli.main()\nexcept SystemExit:\n    pass\n"
-              "import numba, json; print(json.dumps([os.environ.get('NUMBA_CPU_FEATURES'), numba.config.CPU_FEATURES]))")
+              "import numba, json\n"
+              "print(json.dumps([os.environ.get('NUMBA_CPU_FEATURES'), numba.config.CPU_FEATURES]))")
     result = subprocess.run([sys.executable, "-c", script], cwd=REPO, env=_env_without_target(), capture_output=True,
                             text=True, timeout=120)
     assert result.returncode == 0, result.stderr[-3000:]

@@ -27,7 +27,7 @@ pytestmark = pytest.mark.skipif(SNAKEMAKE is None, reason="snakemake is not inst
 
 # files whose snakemake lines a user copies: the docs (code blocks and inline code) and the comments
 # at the top of the Snakefile, the configs and the profiles
-DOC_FILES = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+DOC_FILES = [REPO / "README.md", REPO / "config" / "README.md", *sorted((REPO / "docs").glob("*.md"))]
 COMMENT_FILES = [REPO / "Snakefile", *sorted((REPO / "config").glob("*.yaml")),
                  *sorted((REPO / "workflow" / "profiles").glob("*/config.yaml"))]
 
@@ -132,3 +132,71 @@ def test_documented_configfile_line_dry_runs(tmp_path):
     assert "scene=mine" in out and f"{results}/mine/gaussians" in out, out
     assert "room0" not in out  # the user's scene list replaces the default one
     assert not results.exists()  # a dry run
+
+
+# ----------------------------------------------------------------------------------------------
+# The README's paths exist: every link, and every `path` in code spans and blocks that names a file
+# or folder of the checkout (what the pipeline writes under results/ aside, but results/README.md)
+# ----------------------------------------------------------------------------------------------
+
+
+def readme_paths(text: str) -> set[str]:
+    found = {m.group(1).split("#")[0] for m in re.finditer(r"\]\(([^)\s]+)\)", text)
+             if not re.match(r"(https?:|#|mailto:)", m.group(1))}
+    tops = {p.name for p in REPO.iterdir()} - {".git"}
+    spans = re.findall(r"`([^`\n]+)`", text) + [ln for ln in text.splitlines() if ln.startswith("    ")]
+    for span in spans:
+        for word in re.findall(r"[\w.\-]+(?:/[\w.\-*<>{}]*)+|[\w\-]+\.(?:md|yaml|toml|py|txt)\b", span):
+            word = word.rstrip(".,;:")
+            if word.split("/")[0] not in tops or any(c in word for c in "*<>{}$"):
+                continue
+            if word.startswith("results/") and word != "results/README.md":
+                continue  # written by the pipeline
+            found.add(word)
+    return found
+
+
+def test_every_path_the_readme_names_exists():
+    paths = readme_paths((REPO / "README.md").read_text())
+    assert {"docs/results.md", "config/config.yaml", "LICENSE", "results/README.md"} <= paths, sorted(paths)
+    missing = sorted(p for p in paths if not (REPO / p).exists())
+    assert missing == [], f"README.md names paths that do not exist: {missing}"
+
+
+def test_the_path_check_sees_a_missing_path():
+    paths = readme_paths("see [the notes](docs/no-such-page.md) and `config/gone.yaml`; `results/room0/x` is made")
+    assert paths == {"docs/no-such-page.md", "config/gone.yaml"}
+    assert not any((REPO / p).exists() for p in paths)
+
+
+# ----------------------------------------------------------------------------------------------
+# No dated figures in the library: a date in a docstring or comment goes stale; measurements with
+# their dates belong in docs/history/ (docs/performance.md has the current figures)
+# ----------------------------------------------------------------------------------------------
+
+DATE = re.compile(r"\b20\d\d-[01]\d-[0-3]\d\b")
+# files that still carry one, being changed elsewhere when this check came; remove an entry with its date
+DATED_FOR_NOW = {"trace3d/tracing/merge.py"}
+
+
+def dated_files(root: Path) -> set[str]:
+    return {str(p.relative_to(REPO)) for p in sorted(root.rglob("*.py")) if DATE.search(p.read_text())}
+
+
+def test_no_library_file_carries_a_date():
+    dated = dated_files(REPO / "trace3d")
+    assert dated - DATED_FOR_NOW == set(), "move the dated figures to docs/history/ and say what is true now"
+    assert DATED_FOR_NOW <= dated, f"no date left in {sorted(DATED_FOR_NOW - dated)}: drop it from DATED_FOR_NOW"
+
+
+def test_the_date_check_sees_a_date():
+    assert DATE.search("# 1.3x faster (measured 2026-11-26 on the 2-core machine)")
+    assert not DATE.search("threads: 1  # 2 threads per job; seed 20260 of 2026 rooms")
+
+
+def test_the_front_door_stays_short():
+    """docs/results.md and docs/history/ take the tables and the dated record; these pages stay readable."""
+    limits = {"README.md": 130, "docs/performance.md": 150}
+    over = {name: n for name, limit in limits.items()
+            if (n := len((REPO / name).read_text().splitlines())) > limit}
+    assert over == {}, f"lines over the limit {limits}: {over}"

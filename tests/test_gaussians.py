@@ -1,4 +1,5 @@
-"""Tests of trace3d.gaussians (and trace3d.render.sh): SH evaluation, rotations, initialisations and the PLY round trip."""
+"""Tests of trace3d.gaussians (and trace3d.render.sh): SH evaluation, rotations, initialisations and the PLY
+round trip."""
 
 from __future__ import annotations
 
@@ -106,7 +107,8 @@ def test_quat_to_rotmat_is_rotation_and_matches_axis_angle():
     # 90 degrees about z maps x to y
     half = math.pi / 4
     Rz = quat_to_rotmat(torch.tensor([[math.cos(half), 0, 0, math.sin(half)]], dtype=torch.float64))[0]
-    torch.testing.assert_close(Rz @ torch.tensor([1.0, 0, 0], dtype=torch.float64), torch.tensor([0.0, 1, 0], dtype=torch.float64))
+    torch.testing.assert_close(Rz @ torch.tensor([1.0, 0, 0], dtype=torch.float64),
+                               torch.tensor([0.0, 1, 0], dtype=torch.float64))
 
 
 def test_quats_aligning_z_to_normals():
@@ -148,7 +150,8 @@ def test_init_from_points_grid_scales_colours_and_opacity():
     expected[[0, 4, 20, 24]] = math.sqrt((0.04 + 0.04 + 0.08) / 3)
     torch.testing.assert_close(model.scales, expected[:, None].expand(25, 2), atol=1e-5, rtol=0)
     torch.testing.assert_close(model.opacities, torch.full((25,), 0.1))
-    torch.testing.assert_close(model.colors(torch.zeros(3) + 10), torch.tensor([1.0, 0.0, 1.0]).expand(25, 3), atol=1e-6, rtol=0)
+    torch.testing.assert_close(model.colors(torch.zeros(3) + 10), torch.tensor([1.0, 0.0, 1.0]).expand(25, 3),
+                               atol=1e-6, rtol=0)
     assert model.sh_rest.shape == (25, 3, 3)
     # deterministic from the seed
     again = init_from_points(pts, colors, sh_degree=1, opacity=0.1, seed=1)
@@ -393,7 +396,7 @@ def test_activations_do_not_depend_on_the_thread_count():
 
 def test_init_scales_log_runs_on_one_torch_thread(monkeypatch):
     """The initial log-scales come from torch's log on one thread (a two-thread log once gave the
-    second half other values, docs/performance.md, "Run to run"), and the caller's setting stays."""
+    second half other values, docs/history/performance.md, "Run to run"), and the caller's setting stays."""
     calls = []
     real_log = torch.log
 

@@ -114,7 +114,8 @@ def test_camera_points_near_plane_is_exclusive():
     for fn in (gk.camera_points, gk.camera_points_torch):
         _, z_safe, m2d = fn(means, K, eye, zero, 0.01)
         assert z_safe.tolist() == [1.0, 0.0100001, 1.0]
-        torch.testing.assert_close(m2d[0], torch.tensor([50 * 0.1 + 20 * 0.01, 50 * 0.2 + 15 * 0.01], dtype=torch.float64))
+        torch.testing.assert_close(m2d[0], torch.tensor([50 * 0.1 + 20 * 0.01, 50 * 0.2 + 15 * 0.01],
+                                                        dtype=torch.float64))
 
 
 def test_camera_points_gradcheck():
@@ -189,7 +190,8 @@ def test_render_uses_fused_path_and_matches_twin():
     model = GaussianModel(means=means, quats=torch.randn(n, 4, generator=g),
                                        log_scales=torch.randn(n, 2, generator=g) * 0.3 - 3.0,
                                        opacity_logits=torch.randn(n, generator=g),
-                                       sh_dc=torch.randn(n, 1, 3, generator=g), sh_rest=torch.randn(n, 15, 3, generator=g) * 0.3)
+                                       sh_dc=torch.randn(n, 1, 3, generator=g),
+                                       sh_rest=torch.randn(n, 15, 3, generator=g) * 0.3)
     results = []
     for fused in (True, False):
         gk.set_fused(fused)

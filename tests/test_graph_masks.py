@@ -16,7 +16,6 @@ from trace3d.masks.graph import (
     GraphPromptSegmenter,
     _nest_partitions_reference,
     graph_hierarchy,
-    hierarchy_masks,
     nest_partitions,
 )
 from trace3d.scene import Camera, Scene, write_cameras, write_frame

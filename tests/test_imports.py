@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -94,7 +95,8 @@ def _imports() -> dict[str, set[str]]:
                 if module.startswith("trace3d"):
                     targets.add(module)
                     targets.update(f"{module}.{a.name}" for a in node.names
-                                   if (PACKAGE.parent / f"{module}.{a.name}".replace(".", "/")).with_suffix(".py").is_file()
+                                   if (PACKAGE.parent / f"{module}.{a.name}".replace(".", "/"))
+                                   .with_suffix(".py").is_file()
                                    or (PACKAGE.parent / f"{module}.{a.name}".replace(".", "/")).is_dir())
             elif isinstance(node, ast.Import):
                 targets.update(a.name for a in node.names if a.name.startswith("trace3d"))
@@ -132,7 +134,8 @@ def test_kernel_packages_import_only_their_stage_and_the_render_kernels():
         parts = m.split(".")
         if len(parts) > 2 and parts[2] == "kernels":
             wrong = sorted(t for t in targets if _unit(t) not in allowed | {parts[1]}
-                           or (_unit(t) == "render" and parts[1] != "render" and not t.startswith("trace3d.render.kernels")))
+                           or (_unit(t) == "render" and parts[1] != "render"
+                               and not t.startswith("trace3d.render.kernels")))
             if wrong:
                 bad[m] = wrong
     assert bad == {}
@@ -159,3 +162,73 @@ def test_the_packages_form_no_import_cycle():
     for node in sorted(graph):
         if node not in state:
             visit(node)
+
+
+# ----------------------------------------------------------------------------------------------
+# The whole stack, as data: docs/architecture.md's "Imports flow one way" block, bottom line first.
+# Every top-level module or package of trace3d is on exactly one line and imports only from its own
+# line or the lines below it (the package's __init__, "trace3d", counts as the base).
+# ----------------------------------------------------------------------------------------------
+
+STACK = [
+    ["errors", "io", "params", "threads", "scene", "geometry", "compiling", "cputarget", "preview"],
+    ["datasets", "sfm", "pointcloud", "masks"],
+    ["render"],
+    ["gaussians"],
+    ["training"],
+    ["tracing"],
+    ["lifting"],
+    ["evaluation", "extract", "segment", "report"],
+    ["steps"],
+    ["schema", "codehash", "bench"],
+    ["cli"],
+    ["warm"],
+]
+
+
+def _level() -> dict[str, int]:
+    level = {"trace3d": 0}
+    for k, line in enumerate(STACK):
+        for unit in line:
+            assert unit not in level, f"{unit} is on two lines of STACK"
+            level[unit] = k
+    return level
+
+
+def test_every_module_is_on_a_line_of_the_stack():
+    units = {p.stem for p in PACKAGE.glob("*.py") if p.stem != "__init__"}
+    units |= {p.name for p in PACKAGE.iterdir() if (p / "__init__.py").is_file()}
+    level = _level()
+    assert sorted(units - set(level)) == [], "place these on a line of STACK and of docs/architecture.md"
+    assert sorted(set(level) - units - {"trace3d"}) == [], "STACK names units that do not exist"
+
+
+def _upward(imports: dict[str, set[str]]) -> list[str]:
+    """'module imports target' for every import that goes up the stack."""
+    level = _level()
+    return sorted(f"{m} imports {t}" for m, targets in imports.items() for t in targets
+                  if level[_unit(t)] > level[_unit(m)])
+
+
+def test_imports_go_down_the_stack():
+    assert _upward(_imports()) == []
+
+
+def test_the_stack_is_the_one_architecture_md_draws():
+    text = (REPO / "docs" / "architecture.md").read_text()
+    section = text.split("## Imports flow one way", 1)[1].split("\n## ", 1)[0]
+    block = [ln for ln in section.splitlines() if ln.startswith("    ") and ln.strip()]
+    drawn = []
+    for ln in block:
+        names = re.split(r"\s{2,}", ln.strip())[0]  # the names, before the description
+        names = re.sub(r"\(and [\w/]+\)", "", names)
+        drawn.append([n.strip() for n in names.split(",") if n.strip()])
+    assert drawn == STACK
+
+
+def test_the_stack_check_catches_an_upward_import():
+    """The check, on made-up imports: the rasterizer importing the model, the registry the CLI."""
+    made_up = {"trace3d.render.core": {"trace3d.gaussians"}, "trace3d.steps.gaussians": {"trace3d.cli"},
+               "trace3d.lifting.query": {"trace3d.tracing.git", "trace3d.render"}}
+    assert _upward(made_up) == ["trace3d.render.core imports trace3d.gaussians",
+                                "trace3d.steps.gaussians imports trace3d.cli"]

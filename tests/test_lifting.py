@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from test_tracing import camera_at, concat, grid_model, pixel_x_world, two_objects
+from test_tracing import concat, grid_model, pixel_x_world, two_objects
 from trace3d.errors import ConfigError, Trace3DError
 from trace3d.lifting import ObjectQuery, load_lifted
 from trace3d.lifting.contrastive import (ContrastiveParams, ContrastiveTrainer, contrastive_loss,
@@ -456,7 +456,7 @@ def test_trace_object_from_pixel_weights_matches_the_rasterized_trace():
     """The fast path (products with full-view pixel weights) against GIT tracing of the masks."""
     from trace3d.lifting.query import summed_weights, trace_object_weights
     from trace3d.render import trace
-    from trace3d.render.pixel_weights import pixel_weights, pixel_weights_blend_order
+    from trace3d.render.pixel_weights import pixel_weights
 
     model, truth, cameras = two_objects()
     masks = [pixel_x_world(c) < 0.0 for c in cameras]

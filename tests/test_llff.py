@@ -238,7 +238,8 @@ def test_sa3d_layout_and_explicit_dirs(nvos_root, tmp_path):
     llff.import_nvos(sa3d / "fern", tmp_path / "a", llff.params_from({}))  # object from the folder name
     assert Scene.read(tmp_path / "a").meta["nvos"]["object"] == "fern"
     llff.import_nvos(tmp_path, tmp_path / "b",
-                     llff.params_from({"scene": "fern", "scene_dir": str(root / "fern"), "labels_dir": "nvos/labels/llff"}))
+                     llff.params_from({"scene": "fern", "scene_dir": str(root / "fern"),
+                                       "labels_dir": "nvos/labels/llff"}))
     assert Scene.read(tmp_path / "b").meta["llff"]["scene_dir"] == str((root / "fern").resolve())
 
 
@@ -277,7 +278,8 @@ def test_wrong_layouts_refused(nvos_root, tmp_path, breakage, pattern):
     elif breakage == "no_neg_scribble":
         (labels / "scribbles" / "fern" / "neg_0_fern.png").unlink()
     elif breakage == "no_reference":
-        (labels / "reference_image" / "fern" / "IMG_4038.JPG").rename(labels / "reference_image" / "fern" / "IMG_4000.JPG")
+        reference = labels / "reference_image" / "fern"
+        (reference / "IMG_4038.JPG").rename(reference / "IMG_4000.JPG")
     elif breakage == "target_not_in_images":
         np.save(root / "fern" / "poses_bounds.npy", np.load(root / "fern" / "poses_bounds.npy"))
         (root / "fern" / "images_4" / "IMG_4027.png").rename(root / "fern" / "images_4" / "IMG_4026.png")
@@ -333,7 +335,8 @@ def test_read_nvos_labels(nvos_root, tmp_path):
     labels = llff.read_nvos_labels(scene)
     assert (labels.object, labels.reference_frame, labels.target_frame) == ("fern", "IMG_4038", "IMG_4027")
     np.testing.assert_array_equal(labels.target_mask, render(poses[0])[1])
-    assert labels.positive_points.shape[1] == 2 and point_rays_hit(scene.camera("IMG_4038"), labels.positive_points).all()
+    assert labels.positive_points.shape[1] == 2
+    assert point_rays_hit(scene.camera("IMG_4038"), labels.positive_points).all()
     llff.import_llff(root / "fern", tmp_path / "plain", llff.params_from({}))
     with pytest.raises(Trace3DError, match=r"meta\.json: has no 'nvos' entry"):
         llff.read_nvos_labels(Scene.read(tmp_path / "plain"))

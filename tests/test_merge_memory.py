@@ -12,7 +12,7 @@ import trace3d.tracing.merge as merge
 from trace3d.errors import SceneFormatError
 from trace3d.masks.patches import PatchHierarchy
 from trace3d.tracing.git import GITStats, GITVisible
-from trace3d.tracing.merge import MergeParams, associate, merge_all, merge_view, visible_lists
+from trace3d.tracing.merge import MergeParams, associate, merge_all, visible_lists
 
 pytestmark = pytest.mark.usefixtures("single_numba_thread")
 

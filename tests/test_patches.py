@@ -16,7 +16,6 @@ from trace3d.masks.patches import (
     read_patches,
     run_patches,
 )
-from trace3d.scene import read_u16
 
 from test_masks import H, W, make_scene
 
@@ -155,7 +154,7 @@ class TestMasksToPatches:
     @pytest.mark.parametrize("min_pixels,min_width", [(0, 0), (5, 3), (30, 0), (0, 5)])
     def test_matches_slow_reference(self, split, min_pixels, min_width):
         rng = np.random.default_rng(100 + min_pixels + min_width)
-        for trial in range(3):
+        for _trial in range(3):
             masks = _random_masks(rng, int(rng.integers(1, 9)), 18, 24)
             fast_map, hier = masks_to_patches(masks, min_pixels, split_disconnected=split, min_patch_width=min_width)
             ref_map, ref_containers = _masks_to_patches_reference(masks, min_pixels, split, min_width)

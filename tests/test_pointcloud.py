@@ -187,7 +187,8 @@ class TestSim3:
         w2c = np.eye(4)
         w2c[:3, :3] = Rotation.random(random_state=2).as_matrix()
         w2c[:3, 3] = rng.normal(size=3)
-        points = (np.linalg.inv(w2c) @ np.concatenate([rng.normal(size=(12, 3)) + [0, 0, 5], np.ones((12, 1))], 1).T).T[:, :3]
+        points_cam = np.concatenate([rng.normal(size=(12, 3)) + [0, 0, 5], np.ones((12, 1))], 1)
+        points = (np.linalg.inv(w2c) @ points_cam.T).T[:, :3]
         new_w2c = sim.transform_world_to_camera(w2c)
         before = points @ w2c[:3, :3].T + w2c[:3, 3]
         after = sim.apply(points) @ new_w2c[:3, :3].T + new_w2c[:3, 3]
@@ -245,4 +246,5 @@ class TestAlignCameras:
         with pytest.raises(Trace3DError, match="coincide"):
             align_cameras(poses, poses, "poses")
         with pytest.raises(ValueError, match="unknown alignment method"):
-            align_cameras(random_cameras(np.random.default_rng(0), 4), random_cameras(np.random.default_rng(1), 4), "icp")
+            align_cameras(random_cameras(np.random.default_rng(0), 4), random_cameras(np.random.default_rng(1), 4),
+                          "icp")

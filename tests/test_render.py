@@ -52,7 +52,8 @@ def make_scene(seed: int, n: int = 120, camera: Camera | None = None, channels: 
         cam_pts[2 * k:2 * k + 4, 2] = -cam_pts[2 * k:2 * k + 4, 2]  # behind the camera
         cam_pts[2 * k + 4:2 * k + 8, 0] += 50.0  # far off-screen
         # equal depth, overlapping
-        cam_pts[2 * k + 9:2 * k + 13] = cam_pts[2 * k + 8] + torch.tensor([0.01, 0.0, 0.0]) * torch.arange(1, 5)[:, None]
+        cam_pts[2 * k + 9:2 * k + 13] = (cam_pts[2 * k + 8]
+                                         + torch.tensor([0.01, 0.0, 0.0]) * torch.arange(1, 5)[:, None])
         cam_pts[2 * k + 9:2 * k + 13, 2] = cam_pts[2 * k + 8, 2]
     means = cam_pts @ c2w[:3, :3].T + c2w[:3, 3]
     features = rand(n, channels)
@@ -288,7 +289,8 @@ class TestProjection:
         splats, camera, _ = make_scene(seed, n=300, camera=make_camera(rotate=bool(seed)))
         proj = project(splats, camera)
         front = proj.depths > 0.01
-        args = (proj.ray_transforms.detach(), proj.means2d.detach(), splats.opacities, front, camera.width, camera.height)
+        args = (proj.ray_transforms.detach(), proj.means2d.detach(), splats.opacities, front, camera.width,
+                camera.height)
         fast, slow = footprint_boxes_fast(*args), footprint_boxes(*args)
         assert np.array_equal(fast, slow)
         assert np.array_equal(fast, proj.boxes)
@@ -326,7 +328,8 @@ class TestProjection:
         b = proj.boxes[ks]
         assert ((xs >= b[:, 0]) & (xs < b[:, 2]) & (ys >= b[:, 1]) & (ys < b[:, 3])).all()
         # and the boxes are bounded: crossing disks no longer take the whole image
-        full = (proj.boxes[:, 2] - proj.boxes[:, 0] == camera.width) & (proj.boxes[:, 3] - proj.boxes[:, 1] == camera.height)
+        full = ((proj.boxes[:, 2] - proj.boxes[:, 0] == camera.width)
+                & (proj.boxes[:, 3] - proj.boxes[:, 1] == camera.height))
         assert int(full[crossing.numpy()].sum()) < int(crossing.sum())
         front = proj.depths > 0.01
         args = (proj.ray_transforms.detach(), proj.means2d.detach(), splats.opacities, front, camera.width,
@@ -567,7 +570,8 @@ class TestEdgeCases:
         camera = make_camera(8, 8)
         ok = Splats(torch.zeros(2, 3), torch.ones(2, 4), torch.ones(2, 2), torch.ones(2) * 0.5)
         with pytest.raises(Trace3DError):
-            render(Splats(torch.zeros(2, 3), torch.ones(3, 4), torch.ones(2, 2), torch.ones(2)), camera, torch.zeros(2, 3))
+            render(Splats(torch.zeros(2, 3), torch.ones(3, 4), torch.ones(2, 2), torch.ones(2)), camera,
+                   torch.zeros(2, 3))
         with pytest.raises(Trace3DError):
             render(ok, camera, torch.zeros(3, 3))
         with pytest.raises(Trace3DError):

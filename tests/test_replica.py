@@ -233,7 +233,8 @@ def test_downscale(room0, tmp_path):
     # (to mm rounding); blocks straddling a crease land near it
     for cam, pose in zip(scene.cameras, poses):
         _, _, full_ids = render(pose)
-        same = (full_ids.reshape(12, 2, 16, 2).transpose(0, 2, 1, 3).reshape(12, 16, 4) == full_ids[::2, ::2, None]).all(-1)
+        blocks = full_ids.reshape(12, 2, 16, 2).transpose(0, 2, 1, 3).reshape(12, 16, 4)
+        same = (blocks == full_ids[::2, ::2, None]).all(-1)
         same &= full_ids[::2, ::2] != BOX_ID  # the box's faces share one id; walls are one plane per id
         xyz, pix = backproject_depth(cam, scene.depth(cam.name))
         flat = same[pix[:, 0], pix[:, 1]]

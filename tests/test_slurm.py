@@ -44,7 +44,8 @@ def _cluster_missing() -> str | None:
     except subprocess.TimeoutExpired:
         return "sinfo did not answer within 20 s (slurmctld not running? `bash tests/slurm/start.sh`)"
     if out.returncode != 0:
-        return f"sinfo failed: {(out.stderr or out.stdout).strip()[:300]} (`bash tests/slurm/start.sh` starts the cluster)"
+        return (f"sinfo failed: {(out.stderr or out.stdout).strip()[:300]} "
+                "(`bash tests/slurm/start.sh` starts the cluster)")
     states = out.stdout.split()
     if not any(s.rstrip("*~#").startswith(("idle", "mixed", "allocated")) for s in states[1::2]):
         return f"no SLURM node can run jobs (sinfo: {out.stdout.strip() or 'no nodes'})"
@@ -246,7 +247,8 @@ def _check_against_local(local, local_run, local_log, cluster, elsewhere, env_lo
 
 def test_slurm_kills_a_job_above_its_memory(tmp_path):
     """The cluster enforces --mem (the plugin's mem_mb): a job that fills 800 MB under --mem=200 is killed."""
-    script = "import time; x = bytearray(800 << 20); x[::4096] = b'1' * len(x[::4096]); time.sleep(30); print('survived')"
+    script = ("import time; x = bytearray(800 << 20); x[::4096] = b'1' * len(x[::4096]); time.sleep(30); "
+              "print('survived')")
     log = tmp_path / "oom.log"
     ran = subprocess.run(["sbatch", "--parsable", "--wait", "--mem=200", "--cpus-per-task=1", "--time=2",
                           "--output", str(log), "--wrap", f"{sys.executable} -c \"{script}\""],

@@ -93,7 +93,8 @@ def test_describe_json_lists_steps_parameters_and_lift_keys(capsys):
     lift = info["steps"]["lift"]
     assert lift["rules"] == ["lift"] and lift["entry"] == ["trace3d.lifting.step:run_lift"]
     rows = lift["params"]["lift"]["trace3d.lifting.contrastive:ContrastiveParams"]
-    assert {"name": "pool_pixels", "default": 8192}.items() <= [r for r in rows if r["name"] == "pool_pixels"][0].items()
+    pool_pixels = [r for r in rows if r["name"] == "pool_pixels"][0]
+    assert {"name": "pool_pixels", "default": 8192}.items() <= pool_pixels.items()
     assert info["lift_methods"]["labels"]["keys"] == ["min_confidence", "near"]
     assert info["variant"]["defaults"]["lifting"] == "contrastive"
     assert "masks.simulated" in info["steps"]["masks"]["params"]

@@ -65,7 +65,8 @@ def test_files_csv_latex_and_determinism(tmp_path):
     write_results(tmp_path / "results")
     written = write_tables(tmp_path / "results", tmp_path / "tables")
     names = sorted(p.name for p in written)
-    assert names == sorted(f"{t}.{e}" for t in ("table2", "table2_psnr", "table3", "table5") for e in ("md", "csv", "tex"))
+    assert names == sorted(f"{t}.{e}" for t in ("table2", "table2_psnr", "table3", "table5")
+                           for e in ("md", "csv", "tex"))
     first = {p.name: p.read_bytes() for p in written}
     write_tables(tmp_path / "results", tmp_path / "tables")
     assert {p.name: p.read_bytes() for p in written} == first
@@ -106,7 +107,8 @@ def test_cli_tables(tmp_path):
     assert main(["tables", "--results", str(tmp_path / "none"), "--out", str(tmp_path / "t")]) == 2
     # only the listed evaluate folders
     only = [str(tmp_path / "results" / s / "full" / "eval") for s in ("room0", "room1")]
-    assert main(["tables", "--results", str(tmp_path / "results"), "--out", str(tmp_path / "only"), "--evals", *only]) == 0
+    assert main(["tables", "--results", str(tmp_path / "results"), "--out", str(tmp_path / "only"),
+                 "--evals", *only]) == 0
     text = (tmp_path / "only" / "table2.md").read_text()
     assert "| full |" in text and "no_refine" not in text
     assert main(["tables", "--results", str(tmp_path / "results"), "--out", str(tmp_path / "x"), "--evals",

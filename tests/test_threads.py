@@ -55,7 +55,8 @@ def test_numba_pool_is_sized_in_a_fresh_process(tmp_path):
     code = ("import json, trace3d.cli as c, trace3d.threads as t\n"
             "def f(a):\n"
             "    import numba, torch\n"
-            "    print(json.dumps([numba.config.NUMBA_NUM_THREADS, numba.get_num_threads(), torch.get_num_threads()]))\n"
+            "    print(json.dumps([numba.config.NUMBA_NUM_THREADS, numba.get_num_threads(),"
+            " torch.get_num_threads()]))\n"
             "import trace3d.steps.summary as s\n"
             "s.run = f\n"
             f"c.main(['--threads', '1', 'summary', {str(tmp_path)!r}, '--out', 'x'])\n")

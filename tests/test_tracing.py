@@ -12,7 +12,7 @@ import torch
 from trace3d.errors import ConfigError, SceneFormatError
 from trace3d.gaussians import GaussianModel
 from trace3d.masks.patches import PatchHierarchy
-from trace3d.render import Splats, trace, trace_by_backward
+from trace3d.render import trace, trace_by_backward
 from trace3d.scene import Camera
 from trace3d.tracing.git import GITStats, TraceParams, trace_views
 from trace3d.tracing.merge import (MergeParams, adjusted_rand_index, associate, merge_all, merge_view,

@@ -5,10 +5,9 @@ one AVX-512 register.  For the Intel CPUs that have AVX-512 (Skylake-SP and late
 Rocket Lake, Sapphire Rapids, ...) LLVM's CPU models carry the tuning flag ``prefer-256-bit``, so
 numba, which compiles for the host's CPU model, splits each such loop into two 256-bit halves.  With
 the flag removed (``-prefer-256-bit`` in ``NUMBA_CPU_FEATURES``) the same loops use the 512-bit
-registers: on an Intel Xeon with AVX-512 (LLVM CPU name ``rocketlake``, 2026-11-26) one 504x378
-render's forward + backward went from 72 to 47 ms and a training iteration at 504x378 from 118.7 to
-82.6 ms (``trace3d bench fit``, docs/performance.md, "Vector width").  AMD's Zen 4 model has no such flag, and CPUs without
-AVX-512 have nothing to widen.
+registers, and a render's forward + backward and a training iteration get markedly faster on an Intel
+Xeon with AVX-512 (``trace3d bench fit``; the figures are in docs/performance.md).  AMD's Zen 4 model
+has no such flag, and CPUs without AVX-512 have nothing to widen.
 
 The values do not change: the kernels allow no reassociation (``fastmath={"nsz"}``), so LLVM may
 change how many lanes one instruction handles but not the order or rounding of any operation (a test

@@ -111,7 +111,8 @@ def nearest_neighbour_scales(points: torch.Tensor, k: int = 3) -> torch.Tensor:
     return torch.from_numpy(np.sqrt(np.maximum(mean_sq, 1e-14))).to(points.dtype)
 
 
-def _nearest_neighbour_scales_reference(points: torch.Tensor, k: int = 3, chunk_elements: int = 1 << 24) -> torch.Tensor:
+def _nearest_neighbour_scales_reference(points: torch.Tensor, k: int = 3,
+                                        chunk_elements: int = 1 << 24) -> torch.Tensor:
     """Brute-force twin of :func:`nearest_neighbour_scales` (all pairwise distances, in chunks)."""
     count = points.shape[0]
     if count < 2:
@@ -171,10 +172,12 @@ class GaussianModel:
         }
         for name, shape in expected.items():
             if tuple(getattr(self, name).shape) != shape:
-                raise ValueError(f"GaussianModel.{name}: expected shape {shape}, got {tuple(getattr(self, name).shape)}")
+                raise ValueError(f"GaussianModel.{name}: expected shape {shape}, "
+                                 f"got {tuple(getattr(self, name).shape)}")
         rest = self.sh_rest
         if rest.ndim != 3 or rest.shape[0] != n or rest.shape[2] != 3 or rest.shape[1] not in (0, 3, 8, 15):
-            raise ValueError(f"GaussianModel.sh_rest: expected shape ({n}, K, 3) with K in (0, 3, 8, 15), got {tuple(rest.shape)}")
+            raise ValueError(f"GaussianModel.sh_rest: expected shape ({n}, K, 3) with K in (0, 3, 8, 15), "
+                             f"got {tuple(rest.shape)}")
         self.extras = dict(self.extras)
         for name, value in self.extras.items():
             check_extra(name, value, n)
@@ -427,7 +430,8 @@ def _extra_columns(names: list[str], path: Path) -> dict[str, list[str]]:
             out[name] = [columns[-1]]
             continue
         if sorted(columns) != list(range(len(columns))):
-            raise SceneFormatError(f"{path}: extra attribute {name!r} has columns {sorted(columns)}, expected 0..{len(columns) - 1}.")
+            raise SceneFormatError(f"{path}: extra attribute {name!r} has columns {sorted(columns)}, "
+                                   f"expected 0..{len(columns) - 1}.")
         out[name] = [columns[i] for i in range(len(columns))]
     return out
 
@@ -481,7 +485,8 @@ def _read_binary_ply_vertices(path: Path) -> tuple[int, list[tuple[str, str]], n
     needed = vertex_count * dtype.itemsize
     if len(body) < needed:
         raise SceneFormatError(
-            f"{path}: PLY is truncated ({len(body)} bytes of vertex data, {needed} expected for {vertex_count} vertices)."
+            f"{path}: PLY is truncated ({len(body)} bytes of vertex data, {needed} expected for "
+            f"{vertex_count} vertices)."
         )
     data = np.frombuffer(body[:needed], dtype=dtype, count=vertex_count)
     return vertex_count, properties, data
@@ -519,9 +524,11 @@ def init_from_points(
     points = torch.as_tensor(np.asarray(points) if not torch.is_tensor(points) else points).float().cpu()
     colors_t = torch.as_tensor(np.asarray(colors) if not torch.is_tensor(colors) else colors)
     if points.ndim != 2 or points.shape[1] != 3 or points.shape[0] == 0:
-        raise Trace3DError(f"init_from_points: expected a non-empty [P, 3] point array, got shape {tuple(points.shape)}.")
+        raise Trace3DError(f"init_from_points: expected a non-empty [P, 3] point array, "
+                           f"got shape {tuple(points.shape)}.")
     if colors_t.shape != points.shape:
-        raise Trace3DError(f"init_from_points: colours have shape {tuple(colors_t.shape)}, points {tuple(points.shape)}.")
+        raise Trace3DError(f"init_from_points: colours have shape {tuple(colors_t.shape)}, "
+                           f"points {tuple(points.shape)}.")
     if not 0 <= sh_degree <= MAX_SH_DEGREE:
         raise Trace3DError(f"init_from_points: sh_degree must be in 0..{MAX_SH_DEGREE}, got {sh_degree}.")
     if not 0.0 < opacity < 1.0:
@@ -539,8 +546,8 @@ def init_from_points(
     logit = math.log(opacity / (1.0 - opacity))
     # On one torch thread, like the model's activations: with two, torch's log of the 80,000 distances of
     # a default room gave the second thread's half other values (up to 170 ulps off) in 1 to 3 processes
-    # in 100 on the 2-core development machine (2026-11-26; docs/performance.md, "Run to run"), so the
-    # same scene and seed started the fit from other scales.
+    # in 100 on a 2-core machine (docs/history/performance.md, "Run to run"), so the same scene and
+    # seed started the fit from other scales.
     with torch_threads(1):
         log_distances = torch.log(distances)
     return GaussianModel(
@@ -563,7 +570,8 @@ def init_from_depth(
     use_normals: bool = True,
     seed: int = 0,
 ) -> GaussianModel:
-    """Gaussians on the back-projected depth of the train views (see :func:`trace3d.datasets.depth_init.depth_points_and_normals`).
+    """Gaussians on the back-projected depth of the train views (see
+    :func:`trace3d.datasets.depth_init.depth_points_and_normals`).
 
     With ``use_normals`` each disk starts perpendicular to the depth-map normal (random rotation
     where that normal is undefined).
@@ -592,7 +600,8 @@ def init_random(
     lo = torch.as_tensor(np.asarray(bounds_min, dtype=np.float32))
     hi = torch.as_tensor(np.asarray(bounds_max, dtype=np.float32))
     if lo.shape != (3,) or hi.shape != (3,) or not bool((hi > lo).all()):
-        raise Trace3DError(f"random init: bounds must be two 3-vectors with max > min, got {lo.tolist()} and {hi.tolist()}.")
+        raise Trace3DError(f"random init: bounds must be two 3-vectors with max > min, "
+                           f"got {lo.tolist()} and {hi.tolist()}.")
     generator = torch.Generator().manual_seed(int(seed))
     points = lo + (hi - lo) * torch.rand(count, 3, generator=generator)
     colors = torch.rand(count, 3, generator=generator)

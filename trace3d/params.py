@@ -115,7 +115,8 @@ def load_params_arg(text: str | None) -> dict:
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{source}: not valid JSON/YAML ({yaml_problem(exc)}); check the brackets and quotes.") from exc
+        raise ConfigError(f"{source}: not valid JSON/YAML ({yaml_problem(exc)}); "
+                          f"check the brackets and quotes.") from exc
     if data is None:
         return {}
     if not isinstance(data, dict):

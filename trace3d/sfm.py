@@ -109,9 +109,9 @@ class PosesParams:
         depth_points: (dataset mode) total number of depth pixels back-projected into points.
         num_threads: CPU threads for pycolmap (-1 = all cores of ``trace3d --threads``). 1 by default:
             with more threads COLMAP's poses are not reproducible (two runs of the same room with 2
-            threads gave cameras differing at about 1e-5 relative, 2026-11-26; with one, identical
-            files), and every later step inherits the difference. More threads are faster on large
-            captures at that price.
+            threads gave cameras differing at about 1e-5 relative; with one, identical files), and
+            every later step inherits the difference. More threads are faster on large captures at
+            that price.
         seed: seed of pycolmap's random number generator (RANSAC, mapping) and of point sampling.
         colmap_log_level: verbosity of pycolmap's own log (written to stderr, the step log).
     """
@@ -220,7 +220,8 @@ def _run_dataset(scene: Scene, out_dir: Path, p: PosesParams) -> dict:
     if not scene_has_reference_poses(scene):
         raise ConfigError(
             f"{scene.root / 'cameras.json'}: poses mode 'dataset' needs the scene's own poses, but they are "
-            "unknown (identity poses or meta.json 'poses': 'unknown', as for `trace3d scene images`); use mode 'colmap'."
+            "unknown (identity poses or meta.json 'poses': 'unknown', as for `trace3d scene images`); "
+            "use mode 'colmap'."
         )
     cameras = [dataclasses.replace(c) for c in scene.cameras]
     for cam in cameras:
@@ -299,7 +300,8 @@ def _triangulate_known_poses(scene: Scene, p: PosesParams):
             rec.add_image(image)
         for frame in frames:
             rec.register_frame(frame.frame_id)
-        log.info("poses (dataset): triangulating %d verified image pairs with the scene's poses ...", num_verified_pairs)
+        log.info("poses (dataset): triangulating %d verified image pairs with the scene's poses ...",
+                 num_verified_pairs)
         out = Path(work) / "triangulated"
         out.mkdir()
         options = _mapping_options(p, len(scene.cameras))
@@ -693,7 +695,8 @@ def _align_to_scene(rec, scene: Scene, registered: dict, method: str) -> dict:
         centres = -np.einsum("lji,lj->li", poses[:, :3, :3], poses[:, :3, 3])
         dist = np.linalg.norm(centres - reference_centres, axis=1)
         angles = np.array([rotation_angle_deg(a[:3, :3], b[:3, :3]) for a, b in zip(poses, reference)])
-        suspect = [n for n, d, a in zip(names, dist, angles) if d > SUSPECT_CENTER_REL * diameter or a > SUSPECT_ROTATION_DEG]
+        suspect = [n for n, d, a in zip(names, dist, angles)
+                   if d > SUSPECT_CENTER_REL * diameter or a > SUSPECT_ROTATION_DEG]
         return {
             "suspect_frames": suspect,
             "center_error_mean": float(dist.mean()),

@@ -3,9 +3,8 @@
 ``python -m trace3d.warm [--jobs N]`` compiles (or, where the cache has it already, loads) every
 specialization the pipeline and the tests use of every ``cache=True`` numba function of ``trace3d``,
 into ``NUMBA_CACHE_DIR`` (in its subfolder for this code, :func:`trace3d.codehash.key_numba_cache`, as
-every entry point does). A cold cache costs 4-5 min of CPU (measured 2026-11-28 on the 2-core machine
-beside another benchmark: 324 s over two processes): numba compiles a kernel on its first call, in
-whichever process first calls it, one kernel after another. Warming first spreads that over
+every entry point does). A cold cache costs minutes of CPU (docs/performance.md): numba compiles a
+kernel on its first call, in whichever process first calls it, one kernel after another. Warming first spreads that over
 ``N`` processes (the kernel modules go to whichever process is free, largest first), and afterwards no
 step, job or test compiles anything: ``make test`` and ``make reproduce`` run it before pytest and
 Snakemake, and on a cluster one run before submitting the jobs saves every job its compile
@@ -99,9 +98,8 @@ def units(manifest: dict[str, dict[str, list[str]]], package: Path = PACKAGE) ->
 def _source_lines(module: str, package: Path = PACKAGE) -> dict[str, int]:
     """Lines of each function of ``module`` by its module-level name (``f = njit(...)(g)`` counts ``g``'s):
     what :func:`units` orders by, a kernel's lines times its specializations standing for its compile
-    time (on the 2-core machine, 2026-11-28: the backward kernel's module 87 s of CPU for 241 such
-    lines, the ray caster's 12 s for 390, so the order is rough; the processes take the next unit as
-    they finish one)."""
+    time (a rough order: the rasterizer's backward compiles far slower per line than the synthetic ray
+    caster; the processes take the next unit as they finish one)."""
     from .codehash import module_file
 
     tree = ast.parse(module_file(module, package).read_text())

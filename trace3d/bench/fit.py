@@ -397,7 +397,8 @@ def compare(current: dict, baseline: dict) -> dict:
     for size, row in current["sizes"].items():
         base = baseline["sizes"].get(size)
         if base:
-            out[size] = {"iterations_per_s": row["iterations_per_s"], "baseline_iterations_per_s": base["iterations_per_s"],
+            out[size] = {"iterations_per_s": row["iterations_per_s"],
+                         "baseline_iterations_per_s": base["iterations_per_s"],
                          "speedup": row["iterations_per_s"] / base["iterations_per_s"]}
             cur_rounds, base_rounds = row.get("rounds_ms_per_iteration"), base.get("rounds_ms_per_iteration")
             if cur_rounds and base_rounds and len(cur_rounds) == len(base_rounds):

@@ -33,7 +33,8 @@ def _labels_dir(room: Path) -> Path:
     for cand in ("merge-paper/instances", "merge-official/instances", "scene/instances"):
         if (room / cand).is_dir():
             return room / cand
-    raise Trace3DError(f"{room}: no instance maps (merge-paper/instances, merge-official/instances or scene/instances); "
+    raise Trace3DError(f"{room}: no instance maps (merge-paper/instances, merge-official/instances or "
+                       f"scene/instances); "
                        f"run the merge step for this room first.")
 
 

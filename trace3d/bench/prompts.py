@@ -111,7 +111,8 @@ def run_bench(room: Path, views: int = 16, points: int = 3, min_pixels: int = 10
     log.info("bench prompts: %d object views", count)
     return {
         "scene": str(root), "views": min(views, len(scene.cameras)), "object_views": count, "points": points,
-        "shift": shift, "seed": seed, "sources": {name: {"source": kind, "params": params} for name, (kind, params) in sources.items()},
+        "shift": shift, "seed": seed,
+        "sources": {name: {"source": kind, "params": params} for name, (kind, params) in sources.items()},
         "iou": {name: {cue: {"mean": float(np.mean(vals)), "median": float(np.median(vals))}
                        for cue, vals in per.items()} for name, per in scores.items()},
         "rendered_cue_iou": {"mean": float(np.mean(cue_iou)), "median": float(np.median(cue_iou))},

@@ -102,7 +102,8 @@ def run_bench(room: Path, quick: bool = False) -> dict:
     result["scaling_slope"] = float(np.polyfit(size, total, 1)[0])
     full_g = [r for r in rows if r["gaussians"] == max(x["gaussians"] for x in rows)]
     full_v = [r for r in rows if r["views"] == max(x["views"] for x in rows)]
-    result["slope_views"] = float(np.polyfit(np.log([r["views"] for r in full_g]), np.log([r["total_s"] for r in full_g]), 1)[0])
+    result["slope_views"] = float(np.polyfit(np.log([r["views"] for r in full_g]),
+                                             np.log([r["total_s"] for r in full_g]), 1)[0])
     result["slope_gaussians"] = float(np.polyfit(np.log([r["gaussians"] for r in full_v]),
                                                  np.log([r["total_s"] for r in full_v]), 1)[0])
     return result

@@ -148,7 +148,8 @@ def depth_points_and_normals(
         depth = torch.from_numpy(scene.depth(cam.name)).double()
         if depth.shape != (cam.height, cam.width):
             raise SceneFormatError(
-                f"{scene.depth_path(cam.name)}: depth map is {depth.shape[1]}x{depth.shape[0]}, camera is {cam.width}x{cam.height}."
+                f"{scene.depth_path(cam.name)}: depth map is {depth.shape[1]}x{depth.shape[0]}, "
+                f"camera is {cam.width}x{cam.height}."
             )
         rgb = torch.from_numpy(scene.image(cam.name)).double() / 255.0
         points_cam = depth_to_points(depth, cam.K)

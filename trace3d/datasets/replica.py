@@ -43,7 +43,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from ..errors import SceneFormatError, Trace3DError
+from ..errors import Trace3DError
 from ..io import write_json
 from ..params import from_mapping, to_dict
 from ..scene import Camera, ObjectTable, SceneObject, read_rgb, write_cameras, write_rgb, write_u16

@@ -330,7 +330,8 @@ def trace_argmax(weights: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         label = big.scatter_reduce(0, rows[is_best], cols[is_best], "amin", include_self=True)
     else:
         total = weights.sum(1)
-        best, label = weights.max(1) if weights.shape[1] else (torch.zeros(n, device=dev), torch.zeros(n, device=dev, dtype=torch.int64))
+        best, label = (weights.max(1) if weights.shape[1]
+                       else (torch.zeros(n, device=dev), torch.zeros(n, device=dev, dtype=torch.int64)))
     has = (total > 0) & (best > 0)
     label = torch.where(has, label, torch.full_like(label, -1))
     prob = torch.where(has, best / total.clamp_min(1e-30), torch.zeros_like(total))

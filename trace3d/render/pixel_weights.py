@@ -105,7 +105,8 @@ class PixelWeights:
     def render(self, features: Tensor) -> Tensor:
         """Rendered features of the P pixels: [P, D] = A @ features ([N, D]), differentiable in features."""
         if features.dim() != 2 or features.shape[0] != self.num_gaussians:
-            raise Trace3DError(f"pixel weights: features must be [N={self.num_gaussians}, D], got {tuple(features.shape)}.")
+            raise Trace3DError(f"pixel weights: features must be [N={self.num_gaussians}, D], "
+                               f"got {tuple(features.shape)}.")
         return _SparseRender.apply(features, self)
 
     def render_rows(self, features: Tensor, which: np.ndarray) -> Tensor:
@@ -113,7 +114,8 @@ class PixelWeights:
         ``features``; equal to ``render(features)[which]`` (the twin) at the cost of the Q rows (numba
         gather, and a serial scatter-add for the gradient, so the result does not depend on threads)."""
         if features.dim() != 2 or features.shape[0] != self.num_gaussians:
-            raise Trace3DError(f"pixel weights: features must be [N={self.num_gaussians}, D], got {tuple(features.shape)}.")
+            raise Trace3DError(f"pixel weights: features must be [N={self.num_gaussians}, D], "
+                               f"got {tuple(features.shape)}.")
         which = np.ascontiguousarray(which, np.int64)
         if which.size and (which.min() < 0 or which.max() >= self.pixels.size):
             raise Trace3DError(f"pixel weights: rows must lie in [0, {self.pixels.size}).")
@@ -206,7 +208,8 @@ class _RowsRender(torch.autograd.Function):
         return torch.from_numpy(g).to(ctx.dtype), None, None
 
 
-def pixel_weights(splats: Splats, camera: Camera, pixels: Optional[np.ndarray] = None, near: float = 0.01) -> PixelWeights:
+def pixel_weights(splats: Splats, camera: Camera, pixels: Optional[np.ndarray] = None,
+                  near: float = 0.01) -> PixelWeights:
     """Blending weights of ``pixels`` of ``camera`` (every pixel when None) over the N splats.
 
     Args:

@@ -75,7 +75,8 @@ def collect(results: Path, evals: list[Path] | None = None) -> tuple[list[str], 
             raise SceneFormatError(f"{path}: not valid JSON ({exc}).") from exc
         for key in ("extraction", "nvs"):
             if not isinstance(data.get(key), dict):
-                raise SceneFormatError(f"{path}: the '{key}' section is missing; is it an evaluate step's metrics.json?")
+                raise SceneFormatError(f"{path}: the '{key}' section is missing; "
+                                       f"is it an evaluate step's metrics.json?")
         settings = dict(data.get("variant") or {})
         name = str(settings.pop("variant", variant_dir))
         row = rows.get(name)
@@ -161,7 +162,7 @@ def _per_scene_table(name: str, caption: str, scenes: list[str], rows: list[Row]
     scale = {"object_miou": 100.0, "nvs_miou": 100.0, "nvs_macc": 100.0, "psnr": 1.0}
     header = ["Method"] + scenes + [h for h, _, _ in means]
     csv_header = ["method"] + scenes
-    for h, attr, _ in means:
+    for _h, attr, _ in means:
         csv_header += [f"{attr}_mean", f"{attr}_std"]
     text, tex, plain = [], [], []
     for r in rows:

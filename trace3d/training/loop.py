@@ -178,10 +178,12 @@ def fit(
         TrainingDiverged: on a non-finite loss, gradient or parameter.
     """
     if len(cameras) == 0 or len(cameras) != len(images):
-        raise Trace3DError(f"fit: need one image per camera and at least one view, got {len(cameras)} cameras and {len(images)} images.")
+        raise Trace3DError(f"fit: need one image per camera and at least one view, got {len(cameras)} cameras "
+                           f"and {len(images)} images.")
     for cam, img in zip(cameras, images):
         if tuple(img.shape) != (cam.height, cam.width, 3):
-            raise Trace3DError(f"fit: image of frame {cam.name!r} has shape {tuple(img.shape)}, expected ({cam.height}, {cam.width}, 3).")
+            raise Trace3DError(f"fit: image of frame {cam.name!r} has shape {tuple(img.shape)}, "
+                               f"expected ({cam.height}, {cam.width}, 3).")
     device = resolve_device(params.device)
     torch.manual_seed(params.seed)
     if extent is None:
@@ -332,7 +334,8 @@ def _diverged(reason: str, iteration: int, checkpoint: GaussianModel, checkpoint
 
 @torch.no_grad()
 def evaluate_views(model: GaussianModel, cameras: Sequence[Camera], images: Sequence[torch.Tensor],
-                   sh_degree: int, background: torch.Tensor | None, near: float = 0.01) -> tuple[list[dict], list[torch.Tensor]]:
+                   sh_degree: int, background: torch.Tensor | None,
+                   near: float = 0.01) -> tuple[list[dict], list[torch.Tensor]]:
     """PSNR / SSIM of every view.
 
     Returns:

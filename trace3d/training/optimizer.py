@@ -141,7 +141,8 @@ class GaussianOptimizer:
             if grad is None or sources.get(name) is not param:
                 continue
             buffer = self._grad_buffers.get(name)
-            if buffer is None or buffer.shape != param.shape or buffer.dtype != param.dtype or buffer.device != param.device:
+            if (buffer is None or buffer.shape != param.shape or buffer.dtype != param.dtype
+                    or buffer.device != param.device):
                 buffer = torch.zeros_like(param, memory_format=torch.contiguous_format)
                 self._grad_buffers[name] = buffer
             param.grad = buffer

@@ -92,7 +92,7 @@ class TrainParams:
     fused_adam: bool = True  # torch's fused Adam kernel (same update up to rounding; several times faster)
     # Adam on the Gaussians the view rendered only (as gsplat's "visible Adam"): the others keep their
     # parameters and moments unchanged instead of drifting on their momentum; the bias corrections
-    # count every step. Off by default: it changes the fit (docs/performance.md has the comparison).
+    # count every step. Off by default: it changes the fit (docs/history/performance.md has the comparison).
     visible_adam: bool = False
     # Compact gradients on the CPU renderer: the backward works on the Gaussians the view sees only
     # and Adam gets them through dense gradient buffers (trace3d.training.sparse); the same update
@@ -132,7 +132,8 @@ class TrainParams:
         for name in ("position_lr_init", "position_lr_final", "feature_lr", "opacity_lr", "scaling_lr",
                      "rotation_lr", "lambda_normal", "lambda_distortion", "densify_grad_threshold",
                      "percent_dense", "opacity_cull", "max_screen_size", "max_world_size", "near",
-                     "opacity_reset_grace", "torch_threads", "densify_from", "densify_until", "normal_from", "distortion_from",
+                     "opacity_reset_grace", "torch_threads", "densify_from", "densify_until", "normal_from",
+                     "distortion_from",
                      "random_init_margin"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")

@@ -170,7 +170,8 @@ class CompactView:
 
     def splats(self) -> Splats:
         m = self.leaves
-        scales = _Gathered.apply(m["log_scales"], self._scales, "exp") if m["log_scales"].requires_grad else self._scales
+        scales = (_Gathered.apply(m["log_scales"], self._scales, "exp") if m["log_scales"].requires_grad
+                  else self._scales)
         opac = (_Gathered.apply(m["opacity_logits"], self._opacities, "sigmoid") if m["opacity_logits"].requires_grad
                 else self._opacities)
         return Splats(means=m["means"], quats=m["quats"], scales=scales, opacities=opac)

@@ -54,7 +54,8 @@ def read_pose_cameras(poses_dir: Path, scene: Scene) -> list[Camera]:
             continue
         if (cam.width, cam.height) != (scene_cam.width, scene_cam.height):
             raise SceneFormatError(
-                f"{path}: frame {cam.name!r} is {cam.width}x{cam.height} but its image is {scene_cam.width}x{scene_cam.height}."
+                f"{path}: frame {cam.name!r} is {cam.width}x{cam.height} but its image is "
+                f"{scene_cam.width}x{scene_cam.height}."
             )
         cam.split = scene_cam.split  # the scene owns the split
         cameras.append(cam)
@@ -90,8 +91,9 @@ def initial_model(scene: Scene, poses_dir: Path | None, train_cameras: Sequence[
             xyz, rgb = xyz[keep], rgb[keep]
         model = init_from_points(xyz, rgb, sh_degree=params.sh_degree, opacity=params.init_opacity, seed=params.seed)
     elif method == "depth":
-        model = init_from_depth(scene, train_cameras, stride=params.depth_init_stride, max_points=params.init_max_points,
-                                sh_degree=params.sh_degree, opacity=params.init_opacity, seed=params.seed)
+        model = init_from_depth(scene, train_cameras, stride=params.depth_init_stride,
+                                max_points=params.init_max_points, sh_degree=params.sh_degree,
+                                opacity=params.init_opacity, seed=params.seed)
     else:
         centers = np.stack([c.center for c in train_cameras])
         margin = params.random_init_margin * extent
@@ -202,12 +204,14 @@ def run_gaussians(scene: Scene, poses_dir: Path | None, out_dir: Path, params: d
     if not train_cameras:
         raise SceneFormatError(f"{scene.root}: the scene has no train views to fit.")
     extent = scene_extent(train_cameras)
-    model, init_method = initial_model(scene, Path(poses_dir) if poses_dir is not None else None, train_cameras, p, extent)
+    model, init_method = initial_model(scene, Path(poses_dir) if poses_dir is not None else None, train_cameras, p,
+                                       extent)
     if p.extent == "auto":
         extent = max(extent, points_extent(model.means, train_cameras))
     log.info("scene extent %.3f (%s)", extent, p.extent)
     train_images = load_images(scene, train_cameras)
-    log.info("fitting 2DGS to %d train views (%d test views), schedule %s", len(train_cameras), len(test_cameras), p.schedule())
+    log.info("fitting 2DGS to %d train views (%d test views), schedule %s", len(train_cameras), len(test_cameras),
+             p.schedule())
 
     start = time.perf_counter()
     try:
@@ -229,7 +233,8 @@ def run_gaussians(scene: Scene, poses_dir: Path | None, out_dir: Path, params: d
     background = torch.tensor(p.background, dtype=torch.float32, device=device)
     test_images = load_images(scene, test_cameras)
     with torch_threads(p.torch_threads):
-        test_rows, test_renders = evaluate_views(result.model, test_cameras, test_images, p.sh_degree, background, p.near)
+        test_rows, test_renders = evaluate_views(result.model, test_cameras, test_images, p.sh_degree, background,
+                                                 p.near)
         train_rows, _ = evaluate_views(result.model, train_cameras, train_images, p.sh_degree, background, p.near)
     minutes = (time.perf_counter() - start) / 60.0
 

@@ -239,7 +239,8 @@ class RoomBuilder:
         slab = (lx / 2 + th, ly / 2 + th, th / 2)
         floor = single_part_object("floor", box_part(None, (0, 0, -th / 2), slab, self.texture("floor")), 0, 0, 0)
         self.place(floor, np.zeros(3), np.eye(3), structural=True)
-        ceiling = single_part_object("ceiling", box_part(None, (0, 0, lz + th / 2), slab, self.texture("ceiling")), 0, 0, 0)
+        ceiling = single_part_object("ceiling", box_part(None, (0, 0, lz + th / 2), slab, self.texture("ceiling")),
+                                     0, 0, 0)
         self.place(ceiling, np.zeros(3), np.eye(3), structural=True)
         wall_tex = self.texture("wall")
         accent = int(self.rng.integers(0, 4))
@@ -419,8 +420,8 @@ class RoomBuilder:
         dw = (w - 0.06) / n_doors
         for i in range(n_doors):
             xc = -w / 2 + 0.03 + dw * (i + 0.5)
-            parts.append(box_part(f"door_{i + 1}", (xc, yb + d / 2 + 0.008, h / 2), (dw / 2 - 0.01, 0.008, h / 2 - 0.04),
-                              reseeded(doors, i)))
+            parts.append(box_part(f"door_{i + 1}", (xc, yb + d / 2 + 0.008, h / 2),
+                                  (dw / 2 - 0.01, 0.008, h / 2 - 0.04), reseeded(doors, i)))
         sideboard = ObjectSpec("sideboard", "sideboard", parts, w / 2, d / 2 + 0.008, h)
         tv_w = min(w - 0.2, r.uniform(0.9, 1.3))
         tv_h = tv_w * 9 / 16
@@ -499,7 +500,8 @@ class RoomBuilder:
         fz = r.uniform(1.1, 1.6) * fr
         parts = [
             frustum_part("pot", (0, 0, ph / 2), (rb, rt, ph / 2), self.texture("ceramic")),
-            ellipsoid_part("foliage", (0, 0, ph + fz * 0.85), (fr, fr * r.uniform(0.8, 1.0), fz), self.texture("plant")),
+            ellipsoid_part("foliage", (0, 0, ph + fz * 0.85), (fr, fr * r.uniform(0.8, 1.0), fz),
+                           self.texture("plant")),
         ]
         return ObjectSpec("plant", "plant", parts, max(fr, rt), max(fr, rt), ph + fz * 1.85)
 
@@ -613,7 +615,8 @@ class RoomBuilder:
                 w, d = hx + r.uniform(0.4, 0.7), hy + r.uniform(0.5, 0.8)
                 x0, x1, y0, y1 = self.world_rect(origin, rotation, w, d)
                 if x0 > -self.lx / 2 and x1 < self.lx / 2 and y0 > -self.ly / 2 and y1 < self.ly / 2:
-                    spec = single_part_object("rug", box_part(None, (0, 0, 0.006), (w, d, 0.006), self.texture("rug")), w, d, 0.012)
+                    spec = single_part_object("rug", box_part(None, (0, 0, 0.006), (w, d, 0.006), self.texture("rug")),
+                                              w, d, 0.012)
                     self.place(spec, origin, rotation, parent=group)
                     return True
         for _ in range(100):
@@ -625,7 +628,8 @@ class RoomBuilder:
             rect = self.world_rect(origin, rotation, w, d)
             if self.floor_free(rect):
                 self.occupy_floor(rect, 0.0)
-                spec = single_part_object("rug", box_part(None, (0, 0, 0.006), (w, d, 0.006), self.texture("rug")), w, d, 0.012)
+                spec = single_part_object("rug", box_part(None, (0, 0, 0.006), (w, d, 0.006), self.texture("rug")),
+                                          w, d, 0.012)
                 self.place(spec, origin, rotation)
                 return True
         return False
@@ -662,7 +666,8 @@ class RoomBuilder:
             parts = [frustum_part("body", (0, 0, h / 2), (rb, rt, h / 2), self.texture("ceramic"))]
             if r.uniform() < 0.6:
                 fr = r.uniform(0.08, 0.12)
-                parts.append(ellipsoid_part("flowers", (0, 0, h + fr * 0.8), (fr, fr, fr), self.texture_of("plant", "art")))
+                parts.append(ellipsoid_part("flowers", (0, 0, h + fr * 0.8), (fr, fr, fr),
+                                            self.texture_of("plant", "art")))
                 h = h + fr * 1.8
             else:
                 parts[0].name = None

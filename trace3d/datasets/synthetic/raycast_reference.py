@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 
 from ...scene import Camera
-from .primitives import (LIGHT_FALLOFF, PAT_CHECKER, PAT_NOISE, PAT_PLANKS, PAT_STRIPES, PAT_TILES, SHAPE_BOX, SHAPE_ELLIPSOID,
-                         PackedScene)
+from .primitives import (LIGHT_FALLOFF, PAT_CHECKER, PAT_NOISE, PAT_PLANKS, PAT_STRIPES, PAT_TILES, SHAPE_BOX,
+                         SHAPE_ELLIPSOID, PackedScene)
 
 
 def _ref_hash01(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, seed: int) -> np.ndarray:

@@ -137,8 +137,8 @@ def backward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, n
     tile buffer at constant field offsets, unsigned indices, as in the forward); with more than 8
     channels that loop stops after the first 8 channels' dot product, the other channels are added one
     loop each and a second loop does the rest.  Then, row by row, the terms are added into the splat's
-    sums lane by lane in ascending order: the order of the scalar loop this replaced (2026-11-26), so
-    the sums are the same bit for bit (a lane the splat did not blend adds zero terms, which leave a
+    sums lane by lane in ascending order: the order of the scalar loop this replaced, so the sums are
+    the same bit for bit (a lane the splat did not blend adds zero terms, which leave a
     sum unchanged; the channels' sums skip it, so a non-finite upstream gradient there is ignored as
     before).
 

@@ -41,8 +41,7 @@ def forward_kernel(egeom, ebox, lists, vals, offsets, width, height, tiles_x, ne
     Per (splat, tile) both passes run over all 16 lanes of every tile row of the footprint box, one
     loop each without branches, so that they vectorise and the rows overlap in the pipeline: pass 1
     evaluates alpha and depth (alpha 0 outside the box), pass 2 blends the lanes that are still open
-    (pixels are independent for a fixed splat; before 2026-11-26 each row had its own two loops, 1.34x
-    slower in a fit at either size, the same values).  All
+    (pixels are independent for a fixed splat; two loops per row instead gave the same values, slower).  All
     tile state lives in one flat float32 buffer indexed with unsigned integers at constant field
     offsets: with one base pointer and no negative-index wrap-around the compiler can prove that
     lanes never alias.  List positions are stored tile-relative (exact in float32 below 2^24; the

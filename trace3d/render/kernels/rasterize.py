@@ -20,8 +20,8 @@ from .tiles import _f32, _geom_array, pack_geometry
 
 # The backward deals the image's tiles to this many gradient buffers (tile t to buffer t mod n) and
 # sums them in buffer order, one thread per buffer at a time: the gradients' bits depend on this
-# number and never on how many threads run the kernel. 2 is what every run before 2026-11-28 used
-# at 2 threads (the buffer count was then the thread count), so the README's fits keep their bits.
+# number and never on how many threads run the kernel. 2 is what the earlier 2-thread runs used (the
+# buffer count was then the thread count), so the published fits keep their bits.
 GRADIENT_BUFFERS = 2
 _gradient_buffers = GRADIENT_BUFFERS
 

@@ -10,7 +10,8 @@ from torch import Tensor
 
 from ..projection import TRANSMITTANCE_MIN, Projected
 from .binning import Binning
-from .tiles import FASTMATH, TILE, TILE_PIXELS, _box_in_tile, _geom_array, _lane_alpha, _tile_bounds, pack_geometry, splat_geometry
+from .tiles import (FASTMATH, TILE, TILE_PIXELS, _box_in_tile, _geom_array, _lane_alpha, _tile_bounds, pack_geometry,
+                    splat_geometry)
 
 # trace_kernel's flat tile buffer: transmittance, open flag, the current row's alpha and weight
 T_OPEN = np.uint64(1 * TILE_PIXELS)
