@@ -113,7 +113,8 @@ def test_average_linkage_does_not_chain_where_union_find_does():
     sims2 = np.array([0.9, 0.9, 0.6, 0.7, 0.6, 0.7])
     assert average_linkage(4, pairs, sims2, np.ones(6), 0.5).tolist() == [0, 1, 1, 1, 1]
     # pairs nobody voted on (omega 0) do not count: 1-2 joins on its one compared pair
-    assert average_linkage(3, np.array([[1, 2], [1, 3]]), np.array([0.9, 0.0]), np.array([5, 0]), 0.5).tolist() == [0, 1, 1, 2]
+    lut = average_linkage(3, np.array([[1, 2], [1, 3]]), np.array([0.9, 0.0]), np.array([5, 0]), 0.5)
+    assert lut.tolist() == [0, 1, 1, 2]
     assert average_linkage(0, np.zeros((0, 2)), np.zeros(0), np.zeros(0), 0.5).tolist() == [0]
 
 
