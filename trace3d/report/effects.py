@@ -9,7 +9,8 @@ Input: a spec, one entry per scored run::
      "raw": "both_off"}          # the lower end of the gap
 
 A *sample* is one (room, fit seed, lift seed) (``fit`` 0 where a run names none).  For a mask model and
-a variant, a metric's mean and its 95 % confidence interval (Student's t) are over the samples.  The *paired effect* of a stage compares two
+a variant, a metric's mean and its 95 % confidence interval (Student's t) are over the samples.  The
+*paired effect* of a stage compares two
 variants on the same samples (e.g. ``full - no_merge``: what merging adds with density control on);
 its interval is the t interval of the paired differences, and ``wins`` counts the samples where the
 difference is positive.  The *gap share* of a variant is ``mean(v - raw) / mean(oracle - raw)`` over the
