@@ -84,9 +84,11 @@ def mask_vote(hist: np.ndarray, pairs: np.ndarray, comember: np.ndarray | Sequen
     h = hist[:, :, 1:].astype(np.float64)  # [A, L, T - 1]: label 0 has no vote
     h[:, source_view] = 0.0
     n = h.sum(axis=2)  # [A, L]
-    spread = np.einsum("avt,vts->avs", h, comember)  # [A, L, T - 1]
+    per_view = np.ascontiguousarray(h.transpose(1, 0, 2))  # [L, A, T - 1]
+    spread = np.matmul(per_view, comember)  # each view's histograms times its C_v
+    same_all = np.tensordot(spread, per_view, axes=([0, 2], [0, 2]))  # [A, A]: sum_v h_a[v]^T C_v h_b[v]
     a, b = pairs[:, 0], pairs[:, 1]
-    same = np.einsum("kvs,kvs->k", spread[a], h[b])
+    same = same_all[a, b]
     total = np.einsum("kv,kv->k", n[a], n[b])
     return np.where(total > 0, same / np.maximum(total, 1), 0.0), total.astype(np.int64)
 
