@@ -27,7 +27,7 @@ log = logging.getLogger("trace3d")
 # (The steps' own flag: Step.spin in trace3d.steps.)
 SPIN_COMMANDS = {(s.command, None) for s in STEPS if s.spin} | {("bench", "lift"), ("bench", "lift-forms")}
 # Commands that run no numba kernel: no compile listener (trace3d.compiling), so no numba import.
-NO_KERNEL_COMMANDS = {s.command for s in STEPS if not s.kernels} | {"describe"}
+NO_KERNEL_COMMANDS = {s.command for s in STEPS if not s.kernels} | {"describe", "progress"}
 
 
 def _entry_point_environment() -> None:
@@ -90,6 +90,12 @@ def _cmd_describe(args: argparse.Namespace) -> None:
     for method, entry in info["lift_methods"].items():
         print(f"  {method}: {', '.join(entry['keys'])}")
     print("\nvariant defaults: " + json.dumps(info["variant"]["defaults"]))
+
+
+def _cmd_progress(args: argparse.Namespace) -> None:
+    from .progress import progress_text
+
+    print(progress_text(Path(args.results), Path(args.log) if args.log else None))
 
 
 def _parse_size(text: str) -> tuple[int, int]:
@@ -236,6 +242,12 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--plot", help="fit-sweep: PNG of test PSNR against minutes")
     p.add_argument("--out", help="also write the JSON here")
     p.set_defaults(func=_cmd_bench)
+
+    p = sub.add_parser("progress", help="where a running (or the last) Snakemake run is: jobs done and left per "
+                                        "rule, a time estimate, which tables are written (reads .snakemake/log)")
+    p.add_argument("results", nargs="?", default="results", help="the results folder (default: results)")
+    p.add_argument("--log", help="a Snakemake log (default: the newest in .snakemake/log/ of the current folder)")
+    p.set_defaults(func=_cmd_progress)
 
     p = sub.add_parser("describe", help="the step registry: steps, their flags and parameters with defaults, "
                                         "the lifting methods' keys, the variant defaults")
