@@ -154,6 +154,10 @@ def _cmd_bench(args: argparse.Namespace) -> None:
 
         result = run_bench(Path(args.room), variant=args.variant, params=load_params_arg(args.params),
                            repeats=args.rounds)
+    elif args.name == "startup":
+        from .bench.startup import run_bench
+
+        result = run_bench(rounds=args.rounds, commands=["tables", "evaluate"] if args.quick else None)
     elif args.name == "lift-forms":
         from .bench.lift import compare_forms
 
@@ -212,7 +216,7 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="benchmarks; print one JSON object")
     p.add_argument("name", choices=["render", "synthetic", "trace", "lift", "lift-forms", "fit", "fit-sweep",
-                                    "prompts", "evaluate"])
+                                    "prompts", "evaluate", "startup"])
     p.add_argument("--room", default="results/room0",
                    help="trace, lift: a fitted room's results folder (scene/, poses/, gaussians/, patches/ or "
                         "merge-paper/instances); prompts: a room's results folder or canonical scene with ground "
@@ -231,7 +235,7 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
                    help="fit: run the benchmark this many times (alternating with --baseline's) and report the "
                         "median round per size, every round's time and, with --baseline, each round pair's "
                         "speedup and their median (default 1); evaluate: evaluations in a row (the first may "
-                        "compile kernels)")
+                        "compile kernels); startup: fresh processes per step (the median is reported)")
     p.add_argument("--rooms", dest="room_list", nargs="+", help="fit-sweep: rooms' results folders (scene/, poses/)")
     p.add_argument("--budgets", nargs="+", default=["20000", "40000", "80000"],
                    help="fit-sweep: Gaussian budgets (max_gaussians)")
