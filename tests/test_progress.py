@@ -124,6 +124,9 @@ def test_report_logs_are_not_runs(tmp_path):
     report.write_text("Building DAG of jobs...\nCreating report...\nReport created.\n")
     assert newest_log(tmp_path) == run_log
     report.unlink()
+    lint = run_log.parent / "2026-11-28T221000.000000.snakemake.log"
+    lint.write_text("Congratulations, your workflow is in a good condition!\n")
+    assert newest_log(tmp_path) == run_log
     nothing = run_log.parent / "2026-11-28T230000.000000.snakemake.log"
     nothing.write_text("Building DAG of jobs...\nNothing to be done (all requested files are present and up to date).\n")
     assert newest_log(tmp_path) == nothing

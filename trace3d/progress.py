@@ -128,13 +128,15 @@ def parse_log(path: Path) -> Run:
 
 
 def _runs_jobs(path: Path) -> bool:
-    """Whether a log is a run's: not a report's (``--report``) nor a dry run's (``-n``)."""
+    """Whether a log is a run's: one that builds a DAG (``--lint`` writes a log too), not a report's
+    (``--report``) nor a dry run's (``-n``)."""
     text = Path(path).read_text(errors="replace")
-    return "Creating report..." not in text and "This was a dry-run" not in text
+    return ("Building DAG of jobs" in text and "Creating report..." not in text
+            and "This was a dry-run" not in text)
 
 
 def newest_log(workdir: Path) -> Path:
-    """The newest log of a run (reports and dry runs write logs too: skipped)."""
+    """The newest log of a run (lints, reports and dry runs write logs too: skipped)."""
     logs = [p for p in sorted((Path(workdir) / ".snakemake" / "log").glob("*.snakemake.log")) if _runs_jobs(p)]
     if not logs:
         raise Trace3DError(f"{Path(workdir) / '.snakemake' / 'log'}: no Snakemake log there; run it from the folder "
