@@ -102,6 +102,25 @@ def test_finished_run_and_written_tables(tmp_path):
     assert "done     Table 2 (3D object extraction)" in text and "done     Table 3" in text
 
 
+def test_rules_without_a_finished_job_take_earlier_runs_times(tmp_path):
+    """The second run of `make reproduce` (reproduce) learns the lift's time from the first (paper_tables);
+    a rule without a command (the targets) costs nothing."""
+    logs = tmp_path / ".snakemake" / "log"
+    logs.mkdir(parents=True)
+    first = _log(tmp_path, _start(0, "lift", 1, threads=2) + _finish(6, "lift", 1, 1, 2)
+                 + _start(6, "paper_tables", 2, local=True) + _finish(6, "paper_tables", 2, 2, 2)
+                 + ["Complete log(s): x.log"], {"lift": 1, "paper_tables": 1})
+    first.rename(logs / "2026-11-28T200000.000000.snakemake.log")
+    second = _log(tmp_path, _start(0, "evaluate", 3) + _finish(2, "evaluate", 3, 1, 5),
+                  {"lift": 2, "evaluate": 2, "reproduce": 1})
+    now = (T0 + dt.timedelta(minutes=2)).timestamp()
+    text = progress_text(tmp_path / "results", second, now=now)
+    # lift: 6 min x 2 cores each (earlier run), evaluate: 2 min; (2 x 720 + 120) / 2 cores = 13 min
+    assert "time left: about 13 min" in text, text
+    assert "no job of lift has finished in this run" in text
+    assert "reproduce" not in text.split("time left")[1].split("\n")[0]
+
+
 def test_failed_job_is_counted(tmp_path):
     body = (_start(0, "evaluate", 1) + [_stamp(1), "Error in rule evaluate:", "    message: x", "    jobid: 1",
                                         "    log: x.log (check log file(s) for error details)"])

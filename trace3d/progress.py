@@ -5,9 +5,10 @@ results folder, and prints:
 
 - the jobs of that run: in all, finished, running, waiting, failed, and what is left per rule;
 - a time estimate: every job left costs the mean wall seconds x cores of the finished jobs of its rule
-  in this run (a running job: that minus the seconds it has run, at least 0), summed and divided by the
-  run's cores; jobs of rules none of whose jobs has finished yet are counted and named, not guessed, so
-  the estimate is then a lower bound and says so;
+  in this run, else in the newest earlier run's log that has one (``make reproduce``'s second
+  Snakemake run learns from its first), a running job that minus the seconds it has run (at least 0),
+  summed and divided by the run's cores; jobs of rules no log has a finished job of are counted and
+  named, not guessed, so the estimate is then a lower bound and says so;
 - the tables: for each table the run builds, done (and when) or waiting; a table whose rule is not in
   the run is listed as it is on disk (from an earlier run).
 
@@ -38,6 +39,9 @@ TABLES = (
     ("tracing table", "tracing.md", "tracing_table"),
     ("scenes table", "scenes.md", "scenes_table"),
 )
+
+# The workflow's rules without a command (targets that only collect their inputs): they take no time.
+TARGET_RULES = ("reproduce", "paper_tables")
 
 _STAMP = re.compile(r"^\[(\w{3} \w{3} +\d+ \d\d:\d\d:\d\d \d{4})\]$")
 _START = re.compile(r"^(?:local)?rule (\w+):$")
@@ -135,25 +139,50 @@ def _runs_jobs(path: Path) -> bool:
             and "This was a dry-run" not in text)
 
 
+def run_logs(workdir: Path) -> list[Path]:
+    """The logs of runs in ``workdir``'s ``.snakemake/log``, oldest first (lints, reports and dry runs
+    write logs too: skipped)."""
+    return [p for p in sorted((Path(workdir) / ".snakemake" / "log").glob("*.snakemake.log")) if _runs_jobs(p)]
+
+
+def earlier_means(log: Path, count: int = 20) -> dict[str, float]:
+    """Rule -> mean job cost from the (at most ``count``) run logs before ``log`` in its folder, the
+    newest run's figure where several have one."""
+    logs = [p for p in run_logs(Path(log).parent.parent.parent) if p.name < Path(log).name][-count:]
+    out: dict[str, float] = {}
+    for path in logs:  # oldest first: a newer run's mean replaces an older one's
+        out.update(rule_means(parse_log(path)))
+    return out
+
+
 def newest_log(workdir: Path) -> Path:
-    """The newest log of a run (lints, reports and dry runs write logs too: skipped)."""
-    logs = [p for p in sorted((Path(workdir) / ".snakemake" / "log").glob("*.snakemake.log")) if _runs_jobs(p)]
+    """The newest log of a run (:func:`run_logs`)."""
+    logs = run_logs(workdir)
     if not logs:
         raise Trace3DError(f"{Path(workdir) / '.snakemake' / 'log'}: no Snakemake log there; run it from the folder "
                            f"you started Snakemake in (`make reproduce`: the checkout), or pass --log.")
     return logs[-1]
 
 
-def estimate(run: Run, now: float) -> dict:
+def rule_means(run: Run) -> dict[str, float]:
+    """Rule -> the mean cost of its finished jobs in ``run``: wall seconds x min(threads, cores)."""
+    per_rule: dict[str, list[float]] = {}
+    for jobid, job in run.jobs.items():
+        if job.start is not None and job.end is not None and jobid not in run.failed:
+            per_rule.setdefault(job.rule, []).append((job.end - job.start) * min(job.threads, run.cores))
+    return {rule: sum(v) / len(v) for rule, v in per_rule.items()}
+
+
+def estimate(run: Run, now: float, earlier: dict[str, float] | None = None) -> dict:
     """Jobs left per rule and the seconds left: {left: {rule: n}, running: {rule: n}, seconds: s,
-    unestimated: {rule: n}}. A job's cost is its wall seconds x min(threads, cores)."""
+    unestimated: {rule: n}, from_earlier: [rule]}. A job's cost is the mean of its rule's finished jobs
+    in ``run`` (wall seconds x min(threads, cores)), else ``earlier``'s (rule -> cost, from earlier runs);
+    the rules without a command (:data:`TARGET_RULES`) cost nothing."""
     failed = run.failed
     started = {i: j for i, j in run.jobs.items() if j.start is not None}
     finished = {i: j for i, j in started.items() if j.end is not None and i not in failed}
-    per_rule: dict[str, list[float]] = {}
-    for job in finished.values():
-        per_rule.setdefault(job.rule, []).append((job.end - job.start) * min(job.threads, run.cores))
-    mean = {rule: sum(v) / len(v) for rule, v in per_rule.items()}
+    own = rule_means(run)
+    mean = {**{rule: 0.0 for rule in TARGET_RULES}, **(earlier or {}), **own}
     done_by_rule: dict[str, int] = {}
     for job in finished.values():
         done_by_rule[job.rule] = done_by_rule.get(job.rule, 0) + 1
@@ -173,8 +202,9 @@ def estimate(run: Run, now: float) -> dict:
     for job in running.values():
         if job.rule in mean:
             seconds += max(mean[job.rule] - (now - job.start) * min(job.threads, run.cores), 0.0)
+    from_earlier = sorted(rule for rule in left if rule not in own and rule in (earlier or {}))
     return {"left": left, "running": running_by_rule, "seconds": seconds / run.cores,
-            "unestimated": unestimated, "failed": len(failed)}
+            "unestimated": unestimated, "failed": len(failed), "from_earlier": from_earlier}
 
 
 def _clock(t: float) -> str:
@@ -218,7 +248,7 @@ def progress_text(results: Path, log: Path | None = None, workdir: Path = Path("
     if run.nothing:
         out.append("jobs: nothing to be done (every output is up to date)")
     elif run.total is not None:
-        est = estimate(run, now)
+        est = estimate(run, now, earlier_means(log))
         running = sum(est["running"].values())
         waiting = run.total - run.done - running - len(failed)
         state = "finished" if run.complete and run.done == run.total else \
@@ -239,6 +269,9 @@ def progress_text(results: Path, log: Path | None = None, workdir: Path = Path("
             else:
                 out.append(f"time left: about {_duration(est['seconds'])}, until about {_clock(now + est['seconds'])} "
                            f"(the finished jobs' mean time per rule x jobs left / {run.cores} cores)")
+            if est["from_earlier"]:
+                out.append(f"  (no job of {', '.join(est['from_earlier'])} has finished in this run: their time is "
+                           f"from earlier runs' logs in {Path(log).parent})")
     elif run.complete:
         out.append("jobs: the run has ended; its log lists no jobs (was it run with --quiet?)")
     else:
