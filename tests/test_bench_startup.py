@@ -34,7 +34,7 @@ def test_a_step_without_kernels_loads_neither_torch_nor_numba():
 def test_probe_loads_the_steps_entry_modules():
     """The child imports the step's handler and entry modules: for evaluate, torch and numba."""
     proc = subprocess.run([sys.executable, "-c",
-                           "import sys, time; from trace3d.bench.startup import _first_line; "
+                           "import sys, time; from trace3d.startup_probe import _first_line; "
                            "r = _first_line('evaluate', time.time()); "
                            "print('trace3d.evaluation.step' in sys.modules, 'torch' in r['heavy'])"],
                           cwd=REPO, capture_output=True, text=True, timeout=600)
