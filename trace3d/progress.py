@@ -212,6 +212,8 @@ def _clock(t: float) -> str:
 
 
 def _duration(seconds: float) -> str:
+    if seconds < 30:
+        return "a few seconds"
     minutes = round(seconds / 60)
     return f"{minutes // 60} h {minutes % 60:02d} min" if minutes >= 60 else f"{minutes} min"
 
