@@ -27,7 +27,7 @@ log = logging.getLogger("trace3d")
 # (The steps' own flag: Step.spin in trace3d.steps.)
 SPIN_COMMANDS = {(s.command, None) for s in STEPS if s.spin} | {("bench", "lift"), ("bench", "lift-forms")}
 # Commands that run no numba kernel: no compile listener (trace3d.compiling), so no numba import.
-NO_KERNEL_COMMANDS = {s.command for s in STEPS if not s.kernels} | {"describe"}
+NO_KERNEL_COMMANDS = {s.command for s in STEPS if not s.kernels} | {"describe", "progress"}
 
 
 def _entry_point_environment() -> None:
@@ -92,6 +92,12 @@ def _cmd_describe(args: argparse.Namespace) -> None:
     print("\nvariant defaults: " + json.dumps(info["variant"]["defaults"]))
 
 
+def _cmd_progress(args: argparse.Namespace) -> None:
+    from .progress import progress_text
+
+    print(progress_text(Path(args.results), Path(args.log) if args.log else None))
+
+
 def _parse_size(text: str) -> tuple[int, int]:
     parts = text.lower().split("x")
     if len(parts) != 2 or not all(p.isdigit() and int(p) > 0 for p in parts):
@@ -148,6 +154,10 @@ def _cmd_bench(args: argparse.Namespace) -> None:
 
         result = run_bench(Path(args.room), variant=args.variant, params=load_params_arg(args.params),
                            repeats=args.rounds)
+    elif args.name == "startup":
+        from .bench.startup import run_bench
+
+        result = run_bench(rounds=args.rounds, commands=["tables", "evaluate"] if args.quick else None)
     elif args.name == "lift-forms":
         from .bench.lift import compare_forms
 
@@ -206,7 +216,7 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="benchmarks; print one JSON object")
     p.add_argument("name", choices=["render", "synthetic", "trace", "lift", "lift-forms", "fit", "fit-sweep",
-                                    "prompts", "evaluate"])
+                                    "prompts", "evaluate", "startup"])
     p.add_argument("--room", default="results/room0",
                    help="trace, lift: a fitted room's results folder (scene/, poses/, gaussians/, patches/ or "
                         "merge-paper/instances); prompts: a room's results folder or canonical scene with ground "
@@ -225,7 +235,7 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
                    help="fit: run the benchmark this many times (alternating with --baseline's) and report the "
                         "median round per size, every round's time and, with --baseline, each round pair's "
                         "speedup and their median (default 1); evaluate: evaluations in a row (the first may "
-                        "compile kernels)")
+                        "compile kernels); startup: fresh processes per step (the median is reported)")
     p.add_argument("--rooms", dest="room_list", nargs="+", help="fit-sweep: rooms' results folders (scene/, poses/)")
     p.add_argument("--budgets", nargs="+", default=["20000", "40000", "80000"],
                    help="fit-sweep: Gaussian budgets (max_gaussians)")
@@ -236,6 +246,12 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--plot", help="fit-sweep: PNG of test PSNR against minutes")
     p.add_argument("--out", help="also write the JSON here")
     p.set_defaults(func=_cmd_bench)
+
+    p = sub.add_parser("progress", help="where a running (or the last) Snakemake run is: jobs done and left per "
+                                        "rule, a time estimate, which tables are written (reads .snakemake/log)")
+    p.add_argument("results", nargs="?", default="results", help="the results folder (default: results)")
+    p.add_argument("--log", help="a Snakemake log (default: the newest in .snakemake/log/ of the current folder)")
+    p.set_defaults(func=_cmd_progress)
 
     p = sub.add_parser("describe", help="the step registry: steps, their flags and parameters with defaults, "
                                         "the lifting methods' keys, the variant defaults")

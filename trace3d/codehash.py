@@ -32,9 +32,9 @@ from pathlib import Path
 PACKAGE = Path(__file__).resolve().parent
 ROOT = "trace3d"
 RUNNER = "trace3d.cli"
-# Functions of cli.py whose imports no step runs: the benchmarks, the registry's description and the
+# Functions of cli.py whose imports no step runs: the benchmarks, the registry's description, the run's progress and the
 # `--help` parameter listing.
-NOT_RUN_BY_STEPS = ("_cmd_bench", "_cmd_describe", "_parameters_help")
+NOT_RUN_BY_STEPS = ("_cmd_bench", "_cmd_describe", "_cmd_progress", "_parameters_help")
 
 
 def module_file(module: str, package: Path = PACKAGE) -> Path | None:

@@ -9,6 +9,7 @@ imports this package, so a change to a benchmark reruns no step.
     lift.py       ``bench lift`` (one contrastive iteration, sparse path vs rasterizer) and ``bench lift-forms``
     prompts.py    ``bench prompts``: how well each prompt source answers self-prompting's point prompts
     evaluate.py   ``bench evaluate``: the evaluate step of one (scene, variant, protocol), seconds per phase
+    startup.py    ``bench startup``: every pipeline step's cost before its first line (fresh processes)
 
 Each returns one JSON-serialisable dict, which ``trace3d bench`` prints (and writes with ``--out``).
 """
