@@ -58,14 +58,15 @@ log = logging.getLogger(__name__)
 
 PRESET_VALUES = {
     "paper": {"threshold": 0.5, "min_visibility": 0.0, "uncovered": "exclude", "min_gaussians": 0,
-              "min_view_share": 0.0, "min_views": 1, "min_gaussian_views": 0},
+              "min_view_share": 0.0, "min_views": 1, "min_gaussian_views": 0, "grouping": "union_find"},
     # merge_patches.py / utils/con_mask_utils.py of the released code: an unseen Gaussian is one with
     # zero weight (its 25-pixel threshold belongs to the refine script, remove_ab_gaus.py), label 0 is
     # invalid (valid_weight_mask), a patch needs more than GAUS_NUM_TH = 100 Gaussians, a view votes
     # when more than vf_th = 0.2 of both sets are valid there, at least 2 such views, and a Gaussian
-    # votes with more than 2 valid voting views (filter_weights' ct_th + 1 below 160 views).
+    # votes with more than 2 valid voting views (filter_weights' ct_th + 1 below 160 views); the pairs are
+    # grouped by the released loop of SegmentationMask.repair (released_greedy: at most 2 patches a group).
     "official": {"threshold": 0.4, "min_visibility": 0.0, "uncovered": "exclude", "min_gaussians": 100,
-                 "min_view_share": 0.2, "min_views": 2, "min_gaussian_views": 3},
+                 "min_view_share": 0.2, "min_views": 2, "min_gaussian_views": 3, "grouping": "released_greedy"},
 }
 
 
@@ -77,9 +78,16 @@ class MergeParams:
     min_visibility: a Gaussian sees a view when its GIT visibility exceeds this (both presets 0.0:
         any weight, the released merge_patches.py's "unseen = zero weight").
     candidates: which pairs of a view are compared: ``coarser_mask`` (default), the pairs of
-        patches inside a common coarser mask (supplementary, "Scalability of patch merging"; the
-        released code's conflict areas); ``all_pairs``, every pair of patches of the view (the
-        paper's main text, Sec. 3.3).
+        patches inside a common coarser mask (supplementary, "Scalability of patch merging");
+        ``all_pairs``, every pair of patches of the view (the paper's main text, Sec. 3.3);
+        ``conflict_area``, the released code's rule (:func:`conflict_areas`): the patches of one
+        "conflict area", a union of masks that overlap transitively (IoU >= 0.05), where an area
+        that one patch fills to 95 % is joined into one instance without a vote.
+    grouping: how the pairs above the threshold become instances: ``union_find`` (paper preset),
+        every such pair joined, transitively; ``released_greedy`` (official preset), the released
+        ``SegmentationMask.repair`` loop (:func:`released_greedy`): each patch, in the released ids'
+        order, joins the first later candidate above the threshold, whose Gaussian set then empties,
+        so no instance holds more than 2 patches.
     uncovered: label 0 (pixels no mask covers) in the vote: ``exclude`` (both presets; the released
         code's valid_weight_mask): no vote; ``label``: an ordinary label, two uncovered Gaussians agree.
     min_gaussians: a patch takes part only with more than this many Gaussians (official 100:
@@ -96,7 +104,8 @@ class MergeParams:
     preset: Literal["paper", "official"] = "paper"
     threshold: float | None = None
     min_visibility: float | None = None
-    candidates: Literal["coarser_mask", "all_pairs"] = "coarser_mask"
+    candidates: Literal["coarser_mask", "all_pairs", "conflict_area"] = "coarser_mask"
+    grouping: Literal["union_find", "released_greedy"] | None = None
     uncovered: Literal["exclude", "label"] | None = None
     min_gaussians: int | None = None
     min_view_share: float | None = None
@@ -449,6 +458,7 @@ class ViewMerge:
     omega: np.ndarray  # [K]
     merged: np.ndarray  # [K] bool
     supported: np.ndarray | None = None  # [K] bool: the pair had the rule's minimum support
+    collapsed: np.ndarray | None = None  # [C, 2] pairs joined without a vote (conflict_area's dominated areas)
 
     @property
     def num_instances(self) -> int:
@@ -457,24 +467,161 @@ class ViewMerge:
 
 def candidate_pairs(hierarchy, candidates: str) -> np.ndarray:
     """[K, 2] patch pairs (a < b) of one view compared by the merge: ``coarser_mask``, the pairs
-    inside a common coarser mask (:meth:`PatchHierarchy.candidate_pairs`); ``all_pairs``, all of them."""
+    inside a common coarser mask (:meth:`PatchHierarchy.candidate_pairs`); ``all_pairs``, all of them;
+    ``conflict_area``, the pairs inside one of the released code's conflict areas (:func:`conflict_areas`)."""
+    return view_candidates(hierarchy, candidates)[0]
+
+
+def view_candidates(hierarchy, candidates: str) -> tuple[np.ndarray, np.ndarray]:
+    """The candidate pairs of one view (:func:`candidate_pairs`) and the pairs joined without a vote,
+    [C, 2] (``conflict_area`` only: the areas one patch fills to :data:`CONFLICT_DOMINANCE`; empty otherwise)."""
+    none = np.zeros((0, 2), np.int64)
     if candidates == "coarser_mask":
-        return hierarchy.candidate_pairs()
+        return hierarchy.candidate_pairs(), none
     if candidates == "all_pairs":
         a, b = np.triu_indices(hierarchy.num_patches + 1, k=1)
         keep = a > 0
-        return np.stack([a[keep], b[keep]], axis=1).astype(np.int64)
-    raise ValueError(f"candidates must be coarser_mask or all_pairs, got {candidates!r}")
+        return np.stack([a[keep], b[keep]], axis=1).astype(np.int64), none
+    if candidates == "conflict_area":
+        classes, collapsed = conflict_areas(hierarchy)
+        return _pairs_within(classes, hierarchy.num_patches), _pairs_within(collapsed, hierarchy.num_patches)
+    raise ValueError(f"candidates must be coarser_mask, all_pairs or conflict_area, got {candidates!r}")
+
+
+def _pairs_within(groups: Sequence[np.ndarray], num_patches: int) -> np.ndarray:
+    """[K, 2] unique pairs (a < b) of patches that share one of ``groups``."""
+    keys = []
+    for g in groups:
+        g = np.sort(np.asarray(g, np.int64))
+        a, b = np.triu_indices(len(g), k=1)
+        keys.append(g[a] * (num_patches + 1) + g[b])
+    keys = np.unique(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
+    return np.stack([keys // (num_patches + 1), keys % (num_patches + 1)], axis=1).astype(np.int64)
+
+
+# The released code's conflict areas (utils/con_mask_utils.py, SegmentationMask._union_area / _get_c_area):
+# a set of masks joins an area when the pixels two or more of them cover are at least this share of the
+# pixels any of them covers ...
+CONFLICT_IOU = 0.05
+# ... and an area one patch fills to this share is joined into one instance, without a vote.
+CONFLICT_DOMINANCE = 0.95
+
+
+def released_ids(hierarchy) -> np.ndarray:
+    """[P + 1] int64: each patch's rank in the released code's patch numbering (``_get_mask``: the
+    sorted unique rows of the per-pixel mask-membership vectors, i.e. the patches in lexicographic order
+    of their membership, mask 0 most significant, uncovered first), ties by patch id. Row 0 is 0."""
+    member = hierarchy.membership()
+    count = len(member)
+    if member.shape[1] == 0:
+        return np.arange(count, dtype=np.int64)
+    order = np.lexsort(tuple(member[:, m] for m in range(member.shape[1] - 1, -1, -1)))
+    rank = np.empty(count, np.int64)
+    rank[order] = np.arange(count)
+    return rank
+
+
+def conflict_areas(hierarchy, iou: float = CONFLICT_IOU,
+                   dominance: float = CONFLICT_DOMINANCE) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The released code's conflict areas of one view, computed on the patches (docs/tracing.md).
+
+    The released ``SegmentationMask`` works on pixels: ``conflict`` counts the masks over each pixel;
+    while some pixel has conflict > 1, the masks over the first such pixel of maximal conflict (raster
+    order) are united when their IoU (pixels under two or more of them / pixels under any) is at least
+    ``iou`` (their counts are then taken off ``conflict``; below it, only off the pixels they share),
+    and the area grows by the masks over its first pixel of maximal remaining conflict until none is
+    left. An area that one patch fills to ``dominance`` is relabelled to one id (no vote); the others
+    are conflict areas, whose patches the vote compares. Every pixel of a patch has the same masks, so
+    the same steps run on the patches, weighted by their pixel counts (the masks are the unions of the
+    patches that list them; the patch step's absorbed slivers are counted in their patch), and "the
+    first pixel" is the lowest patch id (ids follow the raster order of the first pixel).
+
+    Returns:
+        the conflict areas' candidate groups (each: the patches standing for its distinct ids, more
+        than one) and the dominated areas' patches (each joined into one instance).
+    """
+    member = hierarchy.membership()  # [P + 1, M]
+    area = np.zeros(len(member), np.int64)
+    area[1:] = hierarchy.patch_areas
+    conflict = member.sum(axis=1).astype(np.int64)
+    rank = released_ids(hierarchy)
+    current = np.arange(len(member))  # the patch whose id each patch carries (a dominated area takes one)
+
+    def union_of(masks: np.ndarray) -> np.ndarray | None:
+        temp = member[:, masks].sum(axis=1)
+        union, inter = temp > 0, temp > 1
+        if area[inter].sum() / max(area[union].sum(), 1) < iou:
+            conflict[inter] -= temp[inter]
+            return None
+        conflict[:] -= temp
+        return union
+
+    areas, collapsed = [], []
+    while conflict.max(initial=0) > 1:
+        found = union_of(member[int(np.argmax(conflict))])
+        if found is None:
+            continue
+        while conflict[found].max() > 0:
+            grown = union_of(member[int(np.argmax(np.where(found, conflict, 0)))])
+            if grown is not None:
+                found |= grown
+        ids = current[found]
+        weight = np.bincount(ids, weights=area[found], minlength=len(member))
+        patches = np.nonzero(found)[0]
+        if weight.max() / max(area[found].sum(), 1) < dominance:
+            areas.append(patches)
+        else:
+            keep = np.unique(ids)
+            current[found] = keep[np.argmin(rank[keep])]
+            collapsed.append(patches)
+    classes = []
+    for patches in areas:
+        ids = np.unique(current[patches])
+        if len(ids) > 1:
+            classes.append(ids)
+    return classes, collapsed
+
+
+def released_greedy(pairs: np.ndarray, sims: np.ndarray, threshold: float, rank: np.ndarray) -> np.ndarray:
+    """[K] bool: the candidate pairs the released loop (``SegmentationMask.repair``) merges.
+
+    Patches are visited in the released numbering (``rank``, :func:`released_ids`); each compares itself
+    with its later candidates in that order and joins the first one whose similarity exceeds
+    ``threshold``; the receiver's Gaussian set is then intersected with the giver's
+    (``c_w_masks[j] & c_w_masks[0]``), which is empty (a Gaussian has one argmax patch per view), so the
+    receiver's similarity to every later patch is 0 (``cal_miou`` with no Gaussians): it neither gives
+    nor receives again. Every instance therefore holds at most 2 patches.
+    """
+    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+    merged = np.zeros(len(pairs), bool)
+    if not len(pairs):
+        return merged
+    swap = rank[pairs[:, 0]] > rank[pairs[:, 1]]
+    first = np.where(swap, pairs[:, 1], pairs[:, 0])
+    later = np.where(swap, pairs[:, 0], pairs[:, 1])
+    done = np.zeros(int(pairs.max()) + 1, bool)  # gave (left the list) or received (emptied)
+    for k in np.lexsort((rank[later], rank[first])):
+        a, b = first[k], later[k]
+        if done[a] or done[b]:
+            continue
+        if sims[k] > threshold:
+            merged[k] = True
+            done[a] = done[b] = True
+    return merged
 
 
 def merge_view(stats: GITStats, view: int, num_patches: int, pairs: np.ndarray, threshold: float,
                min_visibility: float, hist: np.ndarray | None = None, rule: VoteRule = VoteRule(),
-               visible: np.ndarray | None = None) -> ViewMerge:
+               visible: np.ndarray | None = None, grouping: str = "union_find", rank: np.ndarray | None = None,
+               collapsed: np.ndarray | None = None) -> ViewMerge:
     """Merge the patches of view ``view`` (ids 1..num_patches; 0 is uncovered and never merged).
 
     ``hist``: the view's [A, L, T] source histograms when already computed (:func:`all_source_histograms`);
     ``rule``: which Gaussians and views vote (default: the paper preset's); ``visible``: [N, L]
-    ``stats.visible(min_visibility)`` when already computed.
+    ``stats.visible(min_visibility)`` when already computed. ``grouping``: ``union_find`` joins every
+    pair above the threshold; ``released_greedy`` the pairs :func:`released_greedy` picks, in the order
+    ``rank`` ([P + 1], :func:`released_ids`; default: patch ids). ``collapsed``: [C, 2] pairs joined
+    without a vote.
     """
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
     if visible is None:
@@ -507,17 +654,25 @@ def merge_view(stats: GITStats, view: int, num_patches: int, pairs: np.ndarray, 
             sims, omega = _vote_per_gaussian(masked, by_patch, pairs, views, supported, rule, num_labels)
     else:
         sims, omega, supported = vote(hist, pairs, counts, rule)
-    merged = sims > threshold
+    if grouping == "union_find":
+        merged = sims > threshold
+    elif grouping == "released_greedy":
+        merged = released_greedy(pairs, sims, threshold, np.arange(num_patches + 1) if rank is None else rank)
+    else:
+        raise ValueError(f"grouping must be union_find or released_greedy, got {grouping!r}")
+    collapsed = np.zeros((0, 2), np.int64) if collapsed is None else np.asarray(collapsed, np.int64).reshape(-1, 2)
     uf = UnionFind(num_patches + 1)
     for (a, b), m in zip(pairs, merged):
         if m:
             uf.union(int(a), int(b))
+    for a, b in collapsed:
+        uf.union(int(a), int(b))
     roots = np.array([uf.find(p) for p in range(num_patches + 1)])
     lut = np.zeros(num_patches + 1, np.int64)
     order = {r: k + 1 for k, r in enumerate(sorted(set(roots[1:].tolist())))}
     for p in range(1, num_patches + 1):
         lut[p] = order[roots[p]]
-    return ViewMerge(stats.frames[view], lut, pairs, sims, omega, merged, supported)
+    return ViewMerge(stats.frames[view], lut, pairs, sims, omega, merged, supported, collapsed)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -809,9 +964,11 @@ def merge_all(stats: GITStats | GITVisible, hierarchies: Sequence,
     every = all_source_histograms(stats.label, visible, num_source, num_labels)
     rule = params.rule
     for v, (hierarchy, hist) in enumerate(zip(hierarchies, every)):
-        pairs = candidate_pairs(hierarchy, params.candidates)
+        pairs, collapsed = view_candidates(hierarchy, params.candidates)
+        rank = released_ids(hierarchy) if params.grouping == "released_greedy" else None
         merges.append(merge_view(stats, v, hierarchy.num_patches, pairs, params.threshold, params.min_visibility,
-                                 hist=hist, rule=rule, visible=visible))
+                                 hist=hist, rule=rule, visible=visible, grouping=params.grouping, rank=rank,
+                                 collapsed=collapsed))
     hist = None  # the last histogram block
     every.close()  # zip stops on the hierarchies: the generator would hold its per-Gaussian lists
     luts = associate(stats, merges, params.min_visibility, params.association_share, visible=visible)
@@ -859,6 +1016,7 @@ def run_merge(scene, git_dir: Path, patches_dir: Path, out_dir: Path, params: di
             "frame": m.frame, "patches": int(len(m.lut) - 1), "instances": m.num_instances,
             "pairs_considered": int(len(m.pairs)),
             "unsupported": int((~m.supported).sum()) if m.supported is not None else 0,
+            "collapsed": [[int(a), int(b)] for a, b in m.collapsed] if m.collapsed is not None else [],
             "merged": [[int(a), int(b), round(float(s), 4)] for (a, b), s, ok in zip(m.pairs, m.sims, m.merged) if ok],
             "similarities": [[int(a), int(b), round(float(s), 4), int(o)] for (a, b), s, o in zip(m.pairs, m.sims, m.omega)],
         })
@@ -869,6 +1027,7 @@ def run_merge(scene, git_dir: Path, patches_dir: Path, out_dir: Path, params: di
         "mean_instances": float(np.mean([m.num_instances for m in merges])) if merges else 0.0,
         "merged_pairs": int(sum(int(m.merged.sum()) for m in merges)),
         "pairs_considered": int(sum(len(m.pairs) for m in merges)),
+        "collapsed_pairs": int(sum(len(m.collapsed) for m in merges if m.collapsed is not None)),
     }
     if scene is not None and scene.has_instances and scene.objects is not None:
         table = scene.objects.lookup(p.ground_truth_level)
