@@ -309,8 +309,9 @@ def quoted_params(step):
 #   refine: the EgoLifter-style baseline); it excludes consistent_masks and density_control.
 VARIANT_DEFAULTS = _steps.variant_defaults()  # trace3d.steps.Variant
 # merge_candidates: which patch pairs of a view the merge compares: those inside a common coarser mask
-# (the supplementary and the released code; folder merge-<preset>) or all pairs (the paper's main text;
-# folder merge-<preset>-all, refine-<preset>-mergedall).
+# (the supplementary; folder merge-<preset>) or all pairs (the paper's main text; folder
+# merge-<preset>-all, refine-<preset>-mergedall). merge_threshold: a threshold other than the preset's
+# (folder merge-<preset>[-all]-t<threshold>, refine-<preset>-merged[all]-t<threshold>).
 VARIANTS = {name: {**VARIANT_DEFAULTS, **(v or {})} for name, v in config.get("variants", {"full": {}}).items()}
 # A variant's own `lift:` settings (e.g. the self-prompting prompt source) join the scene's lift params.
 for _name, _v in VARIANTS.items():
@@ -364,7 +365,8 @@ def split_run(run):
 
 wildcard_constraints:
     preset="paper|official",
-    masks="merged|mergedall|patches",
+    masks=r"merged(all)?(-t[0-9]+(\.[0-9]+)?)?|patches",
+    mtag=r"(-all)?-t[0-9]+(\.[0-9]+)?",
     variant=f"({'|'.join(VARIANTS)})" r"(\.s[0-9]+)?",
 
 
@@ -396,7 +398,7 @@ def labels_dir(scene, v):
     if v["overlay"]:
         return f"{RESULTS}/{scene}/overlay"
     if v["consistent_masks"]:
-        return f"{RESULTS}/{scene}/merge-{v['preset']}{_all(v)}"
+        return f"{RESULTS}/{scene}/merge-{v['preset']}{merge_suffix(v)}"
     return f"{RESULTS}/{scene}/patches"
 
 
@@ -404,10 +406,16 @@ def _all(v):
     return "-all" if v.get("merge_candidates") == "all_pairs" else ""
 
 
+def merge_suffix(v):
+    """What a variant's merge folder carries after merge-<preset>: -all (all pairs), -t<threshold>."""
+    threshold = v.get("merge_threshold")
+    return _all(v) + (f"-t{float(threshold):g}" if threshold is not None else "")
+
+
 def gaussians_dir(scene, v):
     """The Gaussians a variant's later stages use: refined, or the plain 2DGS fit."""
     if v["density_control"]:
-        masks = f"merged{_all(v).lstrip('-')}" if v["consistent_masks"] else "patches"
+        masks = f"merged{merge_suffix(v).replace('-all', 'all', 1)}" if v["consistent_masks"] else "patches"
         return f"{RESULTS}/{scene}/refine-{v['preset']}-{masks}"
     return f"{RESULTS}/{base_scene(scene)}/gaussians"
 
@@ -429,10 +437,9 @@ def preset_params(step):
 
 
 def refine_labels(wildcards):
-    if wildcards.masks == "merged":
-        return f"{RESULTS}/{wildcards.scene}/merge-{wildcards.preset}"
-    if wildcards.masks == "mergedall":
-        return f"{RESULTS}/{wildcards.scene}/merge-{wildcards.preset}-all"
+    if wildcards.masks.startswith("merged"):  # merged[all][-t<threshold>] -> merge-<preset>[-all][-t<threshold>]
+        suffix = wildcards.masks[len("merged"):]
+        return f"{RESULTS}/{wildcards.scene}/merge-{wildcards.preset}{'-' if suffix.startswith('all') else ''}{suffix}"
     return f"{RESULTS}/{wildcards.scene}/patches"
 
 
@@ -449,10 +456,21 @@ def merge_all_params(wildcards):
     return shlex.quote(json.dumps(merged, sort_keys=True))
 
 
+def merge_tag_params(wildcards):
+    """The merge step's parameters for merge-<preset>[-all]-t<threshold>: the preset's, at that threshold
+    (and comparing all pairs of a view with -all)."""
+    merged = json.loads(step_params(wildcards.scene, "merge"))
+    merged.setdefault("preset", wildcards.preset)
+    if wildcards.mtag.startswith("-all"):
+        merged["candidates"] = "all_pairs"
+    merged["threshold"] = float(wildcards.mtag.rsplit("-t", 1)[1])
+    return shlex.quote(json.dumps(merged, sort_keys=True))
+
+
 # The full method's (first variant with both stages on, else the first) merge and refine figures per scene.
 def table_variant():
     for name, v in VARIANTS.items():
-        if v["consistent_masks"] and v["density_control"] and not _all(v):
+        if v["consistent_masks"] and v["density_control"] and not merge_suffix(v):
             return v
     return None
 
