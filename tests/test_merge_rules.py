@@ -286,12 +286,38 @@ def test_released_greedy_by_hand():
     # 1 -> 2 is below the threshold, 1 -> 3 above: 1 joins 3. 2 -> 3: 3 received (0), 2 -> 4 above: 2 joins
     # 4. 3 and 4 received. 5 -> 6 above: 5 joins 6. The pair (3, 4) and (4, 5) are above too, never taken.
     sims = np.array([0.3, 0.9, 0.8, 0.6, 0.95, 0.99, 0.7])
-    assert released_greedy(pairs, sims, 0.5, rank).tolist() == [False, True, False, True, False, False, True]
+    merged, moves = released_greedy(pairs, sims, 0.5, rank)
+    assert merged.tolist() == [False, True, False, True, False, False, True]
+    assert moves == [(1, 3), (2, 4), (5, 6)]
     # exactly the threshold does not merge ("miou > miou_th")
-    assert released_greedy(np.array([[1, 2]]), np.array([0.4]), 0.4, np.arange(3)).tolist() == [False]
-    # the order is the released numbering: with patch 2 first (rank 0 < 1), 2 gives to 1 and 3 stays alone
-    assert released_greedy(pairs[:3], np.array([0.9, 0.9, 0.9]), 0.5, np.array([0, 2, 1, 3])).tolist() == [
-        True, False, False]
+    assert released_greedy(np.array([[1, 2]]), np.array([0.4]), 0.4, np.arange(3))[0].tolist() == [False]
+    # the order is the released numbering: with patch 2 first (rank 1 < 2), 2 gives to 1 and 3 stays alone
+    merged, moves = released_greedy(pairs[:3], np.array([0.9, 0.9, 0.9]), 0.5, np.array([0, 2, 1, 3]))
+    assert merged.tolist() == [True, False, False] and moves == [(2, 1)]
+
+
+def test_released_greedy_takes_the_sets_afresh_per_area():
+    # two conflict areas sharing patch 2: {1, 2, 3} then {2, 4}, every similarity 0.9. Area 1: 1 gives to
+    # 2, whose set empties. Area 2 (sets taken afresh): 2 gives to 4. The released pixel relabelling
+    # (_change_class_id: the pixels carrying the giver's id take the receiver's) carries 1's pixels along:
+    # one instance {1, 2, 4}, and 3 alone. Over one group instead: 1 -> 2 only, 4 alone.
+    pairs = np.array([[1, 2], [1, 3], [2, 3], [2, 4]])
+    sims = np.full(4, 0.9)
+    merged, moves = released_greedy(pairs, sims, 0.5, np.arange(5), groups=[np.array([1, 2, 3]), np.array([2, 4])])
+    assert merged.tolist() == [True, False, False, True] and moves == [(1, 2), (2, 4)]
+    labels = np.zeros((20, 3), np.int32)
+    labels[:, 0] = np.repeat([1, 2, 3, 4], 5)
+    labels[:, 1:] = 1
+    stats = stats_from(labels)
+    areas = merge_view(stats, 0, 4, pairs, 0.5, 0.0, grouping="released_greedy",
+                       groups=[np.array([1, 2, 3]), np.array([2, 4])])
+    assert areas.lut.tolist() == [0, 1, 1, 2, 1]
+    assert merge_view(stats, 0, 4, pairs, 0.5, 0.0, grouping="released_greedy").lut.tolist() == [0, 1, 1, 2, 3]
+    # a giver whose id has already moved takes no pixels along: 1 gives to 2, then (area 2) 1 gives to 3
+    # again: no pixel carries id 1 any more, so 3 stays alone
+    again = merge_view(stats, 0, 4, np.array([[1, 2], [1, 3]]), 0.5, 0.0, grouping="released_greedy",
+                       groups=[np.array([1, 2]), np.array([1, 3])])
+    assert again.merged.tolist() == [True, True] and again.lut.tolist() == [0, 1, 1, 2, 3]
 
 
 def test_released_ids_follow_the_membership_order():
@@ -333,12 +359,14 @@ def test_conflict_areas_by_hand():
     # - patch 4: m3, m4, IoU 96 / 100 -> area {4, 5}, where patch 4 is 96 % >= 95 %: joined, no vote.
     # - patch 8: m6, m7, IoU 1 / 201 < 0.05 -> no area (its conflict is taken off patch 8 only).
     # - patch 11: m8, m9, IoU 10 / 30 -> {10, 11, 12}; conflict left at 12: m9, m10 -> {10, 11, 12, 13}.
-    classes, collapsed = conflict_areas(conflict_view())
+    classes, collapsed, start = conflict_areas(conflict_view())
     assert [c.tolist() for c in classes] == [[1, 2, 3], [10, 11, 12, 13]]
     assert [c.tolist() for c in collapsed] == [[4, 5]]
-    pairs, joined = view_candidates(conflict_view(), "conflict_area")
-    assert joined.tolist() == [[4, 5]]
-    assert pairs.tolist() == [[1, 2], [1, 3], [2, 3], [10, 11], [10, 12], [10, 13], [11, 12], [11, 13], [12, 13]]
+    # patch 4's membership (m3, m4) sorts after patch 5's (m3) in the released numbering: 5 carries the id
+    assert start.tolist() == [0, 1, 2, 3, 5, 5, 6, 7, 8, 9, 10, 11, 12, 13]
+    c = view_candidates(conflict_view(), "conflict_area")
+    assert c.collapsed.tolist() == [[4, 5]] and [g.tolist() for g in c.groups] == [[1, 2, 3], [10, 11, 12, 13]]
+    assert c.pairs.tolist() == [[1, 2], [1, 3], [2, 3], [10, 11], [10, 12], [10, 13], [11, 12], [11, 13], [12, 13]]
     # the coarser-mask rule instead: pairs sharing a mask; (7, 8), (8, 9) and (4, 5) are candidates there,
     # (10, 12), (10, 13), (11, 13) (a chain, no common mask) are not
     assert candidate_pairs(conflict_view(), "coarser_mask").tolist() == [
@@ -354,9 +382,10 @@ def test_a_dominated_area_is_joined_without_a_vote():
     views = [hierarchy([[0, 1], [0]], [96, 4]), hierarchy([[0], [1]]), hierarchy([[0], [1]])]
     coarse, _ = merge_all(stats_from(labels), views, MergeParams())
     assert coarse[0].pairs.tolist() == [[1, 2]] and coarse[0].sims.tolist() == [0.0] and coarse[0].num_instances == 2
-    released, _ = merge_all(stats_from(labels), views, MergeParams(candidates="conflict_area"))
-    assert len(released[0].pairs) == 0 and released[0].collapsed.tolist() == [[1, 2]]
-    assert released[0].num_instances == 1
+    for grouping in ("union_find", "released_greedy"):
+        released, _ = merge_all(stats_from(labels), views, MergeParams(candidates="conflict_area", grouping=grouping))
+        assert len(released[0].pairs) == 0 and released[0].collapsed.tolist() == [[1, 2]]
+        assert released[0].num_instances == 1
     # at 95 % of the area exactly it is still joined; at 94 % it is a conflict area and the vote (0) decides
     views[0] = hierarchy([[0, 1], [0]], [95, 5])
     assert merge_all(stats_from(labels), views, MergeParams(candidates="conflict_area"))[0][0].num_instances == 1

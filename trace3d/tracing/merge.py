@@ -469,22 +469,41 @@ def candidate_pairs(hierarchy, candidates: str) -> np.ndarray:
     """[K, 2] patch pairs (a < b) of one view compared by the merge: ``coarser_mask``, the pairs
     inside a common coarser mask (:meth:`PatchHierarchy.candidate_pairs`); ``all_pairs``, all of them;
     ``conflict_area``, the pairs inside one of the released code's conflict areas (:func:`conflict_areas`)."""
-    return view_candidates(hierarchy, candidates)[0]
+    return view_candidates(hierarchy, candidates).pairs
 
 
-def view_candidates(hierarchy, candidates: str) -> tuple[np.ndarray, np.ndarray]:
-    """The candidate pairs of one view (:func:`candidate_pairs`) and the pairs joined without a vote,
-    [C, 2] (``conflict_area`` only: the areas one patch fills to :data:`CONFLICT_DOMINANCE`; empty otherwise)."""
+@dataclass
+class ViewCandidates:
+    """What the candidate rule gives the vote and the grouping of one view.
+
+    pairs: [K, 2] candidate pairs (a < b).
+    collapsed: [C, 2] pairs joined without a vote (``conflict_area``: the areas one patch fills to
+        :data:`CONFLICT_DOMINANCE`; empty otherwise).
+    groups: the candidate groups in the released loop's order (``conflict_area``: the conflict areas'
+        ids); ``None``: one group, every candidate pair.
+    start: [P + 1] the id each patch carries before the vote (``conflict_area``: a dominated area's
+        patches carry one of them); ``None``: its own.
+    """
+
+    pairs: np.ndarray
+    collapsed: np.ndarray
+    groups: list | None = None
+    start: np.ndarray | None = None
+
+
+def view_candidates(hierarchy, candidates: str) -> ViewCandidates:
+    """The candidate pairs of one view (:func:`candidate_pairs`) with what the grouping needs."""
     none = np.zeros((0, 2), np.int64)
     if candidates == "coarser_mask":
-        return hierarchy.candidate_pairs(), none
+        return ViewCandidates(hierarchy.candidate_pairs(), none)
     if candidates == "all_pairs":
         a, b = np.triu_indices(hierarchy.num_patches + 1, k=1)
         keep = a > 0
-        return np.stack([a[keep], b[keep]], axis=1).astype(np.int64), none
+        return ViewCandidates(np.stack([a[keep], b[keep]], axis=1).astype(np.int64), none)
     if candidates == "conflict_area":
-        classes, collapsed = conflict_areas(hierarchy)
-        return _pairs_within(classes, hierarchy.num_patches), _pairs_within(collapsed, hierarchy.num_patches)
+        classes, collapsed, start = conflict_areas(hierarchy)
+        return ViewCandidates(_pairs_within(classes, hierarchy.num_patches),
+                              _pairs_within(collapsed, hierarchy.num_patches), classes, start)
     raise ValueError(f"candidates must be coarser_mask, all_pairs or conflict_area, got {candidates!r}")
 
 
@@ -522,7 +541,7 @@ def released_ids(hierarchy) -> np.ndarray:
 
 
 def conflict_areas(hierarchy, iou: float = CONFLICT_IOU,
-                   dominance: float = CONFLICT_DOMINANCE) -> tuple[list[np.ndarray], list[np.ndarray]]:
+                   dominance: float = CONFLICT_DOMINANCE) -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray]:
     """The released code's conflict areas of one view, computed on the patches (docs/tracing.md).
 
     The released ``SegmentationMask`` works on pixels: ``conflict`` counts the masks over each pixel;
@@ -537,8 +556,9 @@ def conflict_areas(hierarchy, iou: float = CONFLICT_IOU,
     first pixel" is the lowest patch id (ids follow the raster order of the first pixel).
 
     Returns:
-        the conflict areas' candidate groups (each: the patches standing for its distinct ids, more
-        than one) and the dominated areas' patches (each joined into one instance).
+        the conflict areas' candidate groups in the order found (each: the patches standing for its
+        distinct ids, more than one), the dominated areas' patches (each joined into one instance) and
+        [P + 1] the patch whose id each patch carries after those joins.
     """
     member = hierarchy.membership()  # [P + 1, M]
     area = np.zeros(len(member), np.int64)
@@ -579,49 +599,68 @@ def conflict_areas(hierarchy, iou: float = CONFLICT_IOU,
         ids = np.unique(current[patches])
         if len(ids) > 1:
             classes.append(ids)
-    return classes, collapsed
+    return classes, collapsed, current
 
 
-def released_greedy(pairs: np.ndarray, sims: np.ndarray, threshold: float, rank: np.ndarray) -> np.ndarray:
-    """[K] bool: the candidate pairs the released loop (``SegmentationMask.repair``) merges.
+def released_greedy(pairs: np.ndarray, sims: np.ndarray, threshold: float, rank: np.ndarray,
+                    groups: Sequence[np.ndarray] | None = None) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """The candidate pairs the released loop (``SegmentationMask.repair``) merges: [K] bool, and the
+    merges (giver, receiver) in the loop's order.
 
-    Patches are visited in the released numbering (``rank``, :func:`released_ids`); each compares itself
-    with its later candidates in that order and joins the first one whose similarity exceeds
+    Per group (``groups``: the conflict areas in order; ``None``: one group of every pair), patches are
+    visited in the released numbering (``rank``, :func:`released_ids`); each compares itself with its
+    later candidates of the group in that order and joins the first one whose similarity exceeds
     ``threshold``; the receiver's Gaussian set is then intersected with the giver's
     (``c_w_masks[j] & c_w_masks[0]``), which is empty (a Gaussian has one argmax patch per view), so the
     receiver's similarity to every later patch is 0 (``cal_miou`` with no Gaussians): it neither gives
-    nor receives again. Every instance therefore holds at most 2 patches.
+    nor receives again within the group. Within one group every instance holds at most 2 patches; the
+    sets are taken afresh for every group, as the released loop does for every conflict area.
     """
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
     merged = np.zeros(len(pairs), bool)
+    moves: list[tuple[int, int]] = []
     if not len(pairs):
-        return merged
+        return merged, moves
     swap = rank[pairs[:, 0]] > rank[pairs[:, 1]]
     first = np.where(swap, pairs[:, 1], pairs[:, 0])
     later = np.where(swap, pairs[:, 0], pairs[:, 1])
-    done = np.zeros(int(pairs.max()) + 1, bool)  # gave (left the list) or received (emptied)
-    for k in np.lexsort((rank[later], rank[first])):
-        a, b = first[k], later[k]
-        if done[a] or done[b]:
-            continue
-        if sims[k] > threshold:
-            merged[k] = True
-            done[a] = done[b] = True
-    return merged
+    order = np.lexsort((rank[later], rank[first]))
+    top = int(pairs.max()) + 1
+    for group in ([None] if groups is None else groups):
+        if group is None:
+            inside = np.ones(len(pairs), bool)
+        else:
+            group = np.asarray(group, np.int64)
+            member = np.zeros(max(top, int(group.max(initial=0)) + 1), bool)
+            member[group] = True
+            inside = member[first] & member[later]
+        done = np.zeros(top, bool)  # gave (left the list) or received (emptied)
+        for k in order:
+            a, b = first[k], later[k]
+            if not inside[k] or done[a] or done[b]:
+                continue
+            if sims[k] > threshold:
+                merged[k] = True
+                done[a] = done[b] = True
+                moves.append((int(a), int(b)))
+    return merged, moves
 
 
 def merge_view(stats: GITStats, view: int, num_patches: int, pairs: np.ndarray, threshold: float,
                min_visibility: float, hist: np.ndarray | None = None, rule: VoteRule = VoteRule(),
                visible: np.ndarray | None = None, grouping: str = "union_find", rank: np.ndarray | None = None,
-               collapsed: np.ndarray | None = None) -> ViewMerge:
+               collapsed: np.ndarray | None = None, groups: Sequence[np.ndarray] | None = None,
+               start: np.ndarray | None = None) -> ViewMerge:
     """Merge the patches of view ``view`` (ids 1..num_patches; 0 is uncovered and never merged).
 
     ``hist``: the view's [A, L, T] source histograms when already computed (:func:`all_source_histograms`);
     ``rule``: which Gaussians and views vote (default: the paper preset's); ``visible``: [N, L]
     ``stats.visible(min_visibility)`` when already computed. ``grouping``: ``union_find`` joins every
     pair above the threshold; ``released_greedy`` the pairs :func:`released_greedy` picks, in the order
-    ``rank`` ([P + 1], :func:`released_ids`; default: patch ids). ``collapsed``: [C, 2] pairs joined
-    without a vote.
+    ``rank`` ([P + 1], :func:`released_ids`; default: patch ids), per group of ``groups`` (default: one).
+    ``collapsed``: [C, 2] pairs joined without a vote; ``start``: [P + 1] the id each patch carries
+    before the vote (the released grouping relabels ids as the released code relabels pixels: a giver's
+    id becomes the receiver's, for every patch carrying it; default: its own).
     """
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
     if visible is None:
@@ -654,24 +693,33 @@ def merge_view(stats: GITStats, view: int, num_patches: int, pairs: np.ndarray, 
             sims, omega = _vote_per_gaussian(masked, by_patch, pairs, views, supported, rule, num_labels)
     else:
         sims, omega, supported = vote(hist, pairs, counts, rule)
+    collapsed = np.zeros((0, 2), np.int64) if collapsed is None else np.asarray(collapsed, np.int64).reshape(-1, 2)
     if grouping == "union_find":
         merged = sims > threshold
+        uf = UnionFind(num_patches + 1)
+        for (a, b), m in zip(pairs, merged):
+            if m:
+                uf.union(int(a), int(b))
+        for a, b in collapsed:
+            uf.union(int(a), int(b))
+        roots = np.array([uf.find(p) for p in range(num_patches + 1)])
     elif grouping == "released_greedy":
-        merged = released_greedy(pairs, sims, threshold, np.arange(num_patches + 1) if rank is None else rank)
+        merged, moves = released_greedy(pairs, sims, threshold, np.arange(num_patches + 1) if rank is None else rank,
+                                        groups)
+        roots = np.arange(num_patches + 1) if start is None else np.asarray(start, np.int64).copy()
+        if start is None:
+            uf = UnionFind(num_patches + 1)
+            for a, b in collapsed:
+                uf.union(int(a), int(b))
+            roots = np.array([uf.find(p) for p in range(num_patches + 1)])
+        for a, b in moves:  # _change_class_id: the pixels carrying the giver's id take the receiver's
+            roots[roots == a] = b
     else:
         raise ValueError(f"grouping must be union_find or released_greedy, got {grouping!r}")
-    collapsed = np.zeros((0, 2), np.int64) if collapsed is None else np.asarray(collapsed, np.int64).reshape(-1, 2)
-    uf = UnionFind(num_patches + 1)
-    for (a, b), m in zip(pairs, merged):
-        if m:
-            uf.union(int(a), int(b))
-    for a, b in collapsed:
-        uf.union(int(a), int(b))
-    roots = np.array([uf.find(p) for p in range(num_patches + 1)])
     lut = np.zeros(num_patches + 1, np.int64)
-    order = {r: k + 1 for k, r in enumerate(sorted(set(roots[1:].tolist())))}
-    for p in range(1, num_patches + 1):
-        lut[p] = order[roots[p]]
+    order: dict = {}
+    for p in range(1, num_patches + 1):  # instances numbered by their lowest patch
+        lut[p] = order.setdefault(int(roots[p]), len(order) + 1)
     return ViewMerge(stats.frames[view], lut, pairs, sims, omega, merged, supported, collapsed)
 
 
@@ -964,11 +1012,11 @@ def merge_all(stats: GITStats | GITVisible, hierarchies: Sequence,
     every = all_source_histograms(stats.label, visible, num_source, num_labels)
     rule = params.rule
     for v, (hierarchy, hist) in enumerate(zip(hierarchies, every)):
-        pairs, collapsed = view_candidates(hierarchy, params.candidates)
+        c = view_candidates(hierarchy, params.candidates)
         rank = released_ids(hierarchy) if params.grouping == "released_greedy" else None
-        merges.append(merge_view(stats, v, hierarchy.num_patches, pairs, params.threshold, params.min_visibility,
+        merges.append(merge_view(stats, v, hierarchy.num_patches, c.pairs, params.threshold, params.min_visibility,
                                  hist=hist, rule=rule, visible=visible, grouping=params.grouping, rank=rank,
-                                 collapsed=collapsed))
+                                 collapsed=c.collapsed, groups=c.groups, start=c.start))
     hist = None  # the last histogram block
     every.close()  # zip stops on the hierarchies: the generator would hold its per-Gaussian lists
     luts = associate(stats, merges, params.min_visibility, params.association_share, visible=visible)
