@@ -54,6 +54,8 @@ EFFECTS = (
     ("both: full - both_off", "full", "both_off"),
     ("merge, all pairs (refine on): full_all - no_merge", "full_all", "no_merge"),
     ("all pairs vs coarser mask: full_all - full", "full_all", "full"),
+    ("merge at theta 0.4 (refine on): full_t04 - no_merge", "full_t04", "no_merge"),
+    ("theta 0.4 vs 0.5: full_t04 - full", "full_t04", "full"),
 )
 
 
