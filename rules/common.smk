@@ -344,9 +344,10 @@ def quoted_params(step):
 #   refine: the EgoLifter-style baseline); it excludes consistent_masks and density_control.
 VARIANT_DEFAULTS = _steps.variant_defaults()  # trace3d.steps.Variant
 # merge_candidates: which patch pairs of a view the merge compares: those inside a common coarser mask
-# (the supplementary and the released code; folder merge-<preset>) or all pairs (the paper's main text;
-# folder merge-<preset>-all, refine-<preset>-mergedall); merge_method: the paper's vote or the hierarchical
-# merge (beyond the paper; folder merge-<preset>-hier, refine-<preset>-mergedhier).
+# (the supplementary; folder merge-<preset>) or all pairs (the paper's main text; folder merge-<preset>-all,
+# refine-<preset>-mergedall); merge_method: the paper's vote or the hierarchical merge (beyond the paper;
+# folder merge-<preset>-hier, refine-<preset>-mergedhier); merge_threshold: a threshold other than the
+# preset's (folder merge-<preset>[-all|-hier]-t<threshold>, refine-<preset>-merged[all|hier]-t<threshold>).
 VARIANTS = {name: {**VARIANT_DEFAULTS, **(v or {})} for name, v in config.get("variants", {"full": {}}).items()}
 # A variant's own `lift:` settings (e.g. the self-prompting prompt source) join the scene's lift params.
 for _name, _v in VARIANTS.items():
@@ -400,7 +401,8 @@ def split_run(run):
 
 wildcard_constraints:
     preset="paper|official",
-    masks="merged|mergedall|mergedhier|patches",
+    masks=r"merged(all|hier)?(-t[0-9]+(\.[0-9]+)?)?|patches",
+    mtag=r"(-all|-hier)?-t[0-9]+(\.[0-9]+)?",
     variant=f"({'|'.join(VARIANTS)})" r"(\.s[0-9]+)?",
 
 
@@ -433,7 +435,7 @@ def labels_dir(scene, v):
     if v["overlay"]:
         return f"{RESULTS}/{scene}/overlay"
     if v["consistent_masks"]:
-        return f"{RESULTS}/{scene}/merge-{v['preset']}{_all(v)}"
+        return f"{RESULTS}/{scene}/merge-{v['preset']}{merge_suffix(v)}"
     return f"{RESULTS}/{scene}/patches"
 
 
@@ -452,16 +454,20 @@ def merge_flavour(v):
     return "all" if v.get("merge_candidates") == "all_pairs" else ""
 
 
-def _all(v):
-    """The merge folder's suffix of a variant ('', '-all', '-hier')."""
+def merge_suffix(v):
+    """What a variant's merge folder carries after merge-<preset>: -all (all pairs) or -hier (the
+    hierarchical merge), then -t<threshold> (a threshold other than the preset's)."""
     flavour = merge_flavour(v)
-    return f"-{flavour}" if flavour else ""
+    threshold = v.get("merge_threshold")
+    return (f"-{flavour}" if flavour else "") + (f"-t{float(threshold):g}" if threshold is not None else "")
 
 
 def gaussians_dir(scene, v):
     """The Gaussians a variant's later stages use: refined, or the plain 2DGS fit."""
     if v["density_control"]:
-        masks = f"merged{_all(v).lstrip('-')}" if v["consistent_masks"] else "patches"
+        suffix = merge_suffix(v)
+        suffix = suffix[1:] if suffix.startswith(("-all", "-hier")) else suffix
+        masks = f"merged{suffix}" if v["consistent_masks"] else "patches"
         return f"{RESULTS}/{scene}/refine-{v['preset']}-{masks}"
     return f"{RESULTS}/{fit_scene(scene)}/gaussians"
 
@@ -483,9 +489,10 @@ def preset_params(step):
 
 
 def refine_labels(wildcards):
-    if wildcards.masks.startswith("merged"):
-        flavour = wildcards.masks[len("merged"):]
-        return f"{RESULTS}/{wildcards.scene}/merge-{wildcards.preset}" + (f"-{flavour}" if flavour else "")
+    if wildcards.masks.startswith("merged"):  # merged[all|hier][-t<threshold>] -> merge-<preset>[-all|-hier][-t<threshold>]
+        suffix = wildcards.masks[len("merged"):]
+        dash = "-" if suffix.startswith(("all", "hier")) else ""
+        return f"{RESULTS}/{wildcards.scene}/merge-{wildcards.preset}{dash}{suffix}"
     return f"{RESULTS}/{wildcards.scene}/patches"
 
 
@@ -506,10 +513,22 @@ def merge_flavour_params(flavour):
     return inner
 
 
+def merge_tag_params(wildcards):
+    """The merge step's parameters for merge-<preset>[-all|-hier]-t<threshold>: the preset's (with the
+    flavour's keys, MERGE_FLAVOURS) at that threshold."""
+    merged = json.loads(step_params(wildcards.scene, "merge"))
+    merged.setdefault("preset", wildcards.preset)
+    flavour, _, threshold = wildcards.mtag.rpartition("-t")
+    if flavour:
+        merged.update(MERGE_FLAVOURS[flavour.lstrip("-")])
+    merged["threshold"] = float(threshold)
+    return shlex.quote(json.dumps(merged, sort_keys=True))
+
+
 # The full method's (first variant with both stages on, else the first) merge and refine figures per scene.
 def table_variant():
     for name, v in VARIANTS.items():
-        if v["consistent_masks"] and v["density_control"] and not _all(v):
+        if v["consistent_masks"] and v["density_control"] and not merge_suffix(v):
             return v
     return None
 

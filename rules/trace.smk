@@ -77,6 +77,17 @@ use rule merge as merge_hier with:
         f"{RESULTS}/logs/{{scene}}/merge-{{preset}}-hier.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{scene}}/merge-{{preset}}-hier.tsv"
+# The same merge at a threshold other than the preset's (variant merge_threshold), e.g. merge-paper-t0.4.
+use rule merge as merge_threshold with:
+    output:
+        directory(f"{RESULTS}/{{scene}}/merge-{{preset}}{{mtag}}"),
+    params:
+        p=merge_tag_params,
+        code=step_code("merge"),
+    log:
+        f"{RESULTS}/logs/{{scene}}/merge-{{preset}}{{mtag}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{scene}}/merge-{{preset}}{{mtag}}.tsv"
 
 
 rule refine:

@@ -164,6 +164,48 @@ def test_fused_loss_kernel_matches_its_twins(kernel):
     assert float(fused_contrastive_loss(feats, labels, **kw).detach()) == float(fused.detach())
 
 
+def released_contrastive_loss(features, labels, temperature):
+    """The released code's loss (utils/loss_utils.py, contrastive_loss), written out from its formula:
+    over all P x P pixel pairs, positives are the other pixels of the anchor's instance (the diagonal is
+    not one); logits = exp(exp(-d^2 / t)) with t = temperature on positives and 1 elsewhere (the
+    diagonal too: d = 0 there, logit e); prob_u = sum of the positives' logits / sum of all logits of row
+    u; loss = -sum of log prob_u over the anchors with a nonzero prob, divided by P."""
+    p = features.shape[0]
+    positive = (labels[:, None] == labels[None, :]) & ~torch.eye(p, dtype=torch.bool)
+    d2 = ((features[:, None, :] - features[None, :, :]) ** 2).sum(-1)
+    t = torch.where(positive, torch.full_like(d2, temperature), torch.ones_like(d2))
+    logits = torch.exp(torch.exp(-d2 / t))
+    prob = (logits * positive).sum(-1) / logits.sum(-1)
+    return -torch.log(prob[prob != 0]).sum() / p
+
+
+@pytest.mark.parametrize("temperature", [100.0, 3.0])
+def test_official_loss_is_the_released_one(temperature):
+    """The official kernel (torch form, float64 reference and fused kernel, values and gradients) against
+    the transcription of the released loss: exp(exp(-d^2/tau)) logits, the anchor out of its own
+    positives, anchors alone in their instance adding nothing (150 pixels: not a multiple of the tile)."""
+    gen = torch.Generator().manual_seed(11)
+    feats = torch.randn(150, 16, generator=gen, dtype=torch.float64) * 0.8
+    labels = torch.randint(1, 6, (150,), generator=gen)
+    labels[3], labels[70] = 98, 99  # two instances of one pixel
+    kw = {"kernel": "official", "temperature_pos": temperature, "temperature_neg": 1.0}
+    f64 = feats.clone().requires_grad_(True)
+    released = released_contrastive_loss(f64, labels, temperature)
+    (g_released,) = torch.autograd.grad(released, f64)
+    assert g_released[3].abs().sum() > 0  # a lone anchor still weighs in other anchors' denominators
+    for form in (contrastive_loss, contrastive_loss_reference):
+        f = feats.clone().requires_grad_(True)
+        value = form(f, labels, **kw)
+        (g,) = torch.autograd.grad(value, f)
+        torch.testing.assert_close(value, released, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(g, g_released, rtol=1e-9, atol=1e-12)
+    f32 = feats.float().requires_grad_(True)
+    fused = fused_contrastive_loss(f32, labels, **kw)
+    (g_fused,) = torch.autograd.grad(fused, f32)
+    assert float(fused.detach()) == pytest.approx(float(released.detach()), rel=2e-6)
+    torch.testing.assert_close(g_fused.double(), g_released, rtol=1e-3, atol=1e-4 * float(g_released.abs().max()))
+
+
 def test_fused_loss_kernel_does_not_depend_on_the_thread_count():
     import numba
 

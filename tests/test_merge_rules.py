@@ -12,9 +12,9 @@ from trace3d.errors import ConfigError
 from trace3d.masks.patches import PatchHierarchy
 from trace3d.params import from_mapping
 from trace3d.tracing.git import GITStats
-from trace3d.tracing.merge import (PLAIN, MergeParams, ViewMerge, VoteRule, merge_all, merge_view,
-                                   pair_similarity_bruteforce, patch_owners, source_histograms, view_pair_quality,
-                                   vote)
+from trace3d.tracing.merge import (PLAIN, MergeParams, ViewMerge, VoteRule, candidate_pairs, conflict_areas,
+                                   merge_all, merge_view, pair_similarity_bruteforce, patch_owners, released_greedy,
+                                   released_ids, source_histograms, view_candidates, view_pair_quality, vote)
 
 pytestmark = pytest.mark.usefixtures("single_numba_thread")
 
@@ -26,10 +26,12 @@ def stats_from(labels) -> GITStats:
                     num_labels=np.full(labels.shape[1], int(labels.max()) + 1, np.int64))
 
 
-def hierarchy(masks: list[list[int]]) -> PatchHierarchy:
-    """Patches 1..P, each listed with the masks containing it."""
+def hierarchy(masks: list[list[int]], areas: list[int] | None = None) -> PatchHierarchy:
+    """Patches 1..P, each listed with the masks containing it (and its pixel count: 1 unless given)."""
     count = 1 + max((m for ms in masks for m in ms), default=0)
-    return PatchHierarchy(masks, np.ones(len(masks), np.int64), np.ones(count, np.int64), np.ones(count, np.float32))
+    areas = np.ones(len(masks), np.int64) if areas is None else np.asarray(areas, np.int64)
+    mask_areas = np.array([sum(a for a, ms in zip(areas, masks) if m in ms) for m in range(count)], np.int64)
+    return PatchHierarchy(masks, areas, mask_areas, np.ones(count, np.float32))
 
 
 def whole(num_patches: int) -> PatchHierarchy:
@@ -243,3 +245,150 @@ def test_tracing_table_reports_pair_figures(tmp_path):
     cells = dict(zip([c.strip() for c in header.split("|")], [c.strip() for c in mean.split("|")]))
     assert cells["should-merge out of reach"] == "0.500" and cells["pair precision"] == "0.500"
     assert cells["should-merge joined"] == "0.500" and cells["pair recall"] == "0.500"
+
+
+# ----------------------------------------------------------------------------------------------
+# Grouping: union-find against the released greedy loop
+# ----------------------------------------------------------------------------------------------
+
+
+def object_in_three_patches() -> GITStats:
+    """View 0: object A cut into patches 1, 2, 3 (Gaussians 0-4, 5-9, 10-14), object B is patch 4
+    (15-19). Views 1 and 2 see A whole (label 1) and B (label 2): sim = 1 within A, 0 with B."""
+    labels = np.zeros((20, 3), np.int32)
+    labels[:, 0] = np.repeat([1, 2, 3, 4], 5)
+    labels[:, 1] = labels[:, 2] = np.repeat([1, 1, 1, 2], 5)
+    return stats_from(labels)
+
+
+def test_released_greedy_joins_at_most_two_patches():
+    stats = object_in_three_patches()
+    views = [whole(4), hierarchy([[0], [1]]), hierarchy([[0], [1]])]
+    uf, _ = merge_all(stats, views, MergeParams())
+    greedy, _ = merge_all(stats, views, MergeParams(grouping="released_greedy"))
+    assert uf[0].pairs.tolist() == greedy[0].pairs.tolist() == [[1, 2], [1, 3], [1, 4], [2, 3], [2, 4], [3, 4]]
+    np.testing.assert_array_equal(uf[0].sims, greedy[0].sims)
+    # union-find: every pair above 0.5 -> {1, 2, 3}, {4}
+    assert uf[0].merged.tolist() == [True, True, False, True, False, False]
+    assert uf[0].lut.tolist() == [0, 1, 1, 1, 2]
+    # released loop: 1 joins 2 (the first later patch above the threshold); 2's Gaussian set empties
+    # (c_w_masks[j] & c_w_masks[0]), so 2 gives to nobody and 3 cannot join it; 3 vs 4 is 0 -> {1, 2}, {3}, {4}
+    assert greedy[0].merged.tolist() == [True, False, False, False, False, False]
+    assert greedy[0].lut.tolist() == [0, 1, 1, 2, 3]
+    assert MergeParams(preset="official").grouping == "released_greedy" and MergeParams().grouping == "union_find"
+    with pytest.raises(ConfigError, match="grouping"):
+        from_mapping(MergeParams, {"grouping": "greedy"}, "merge params")
+
+
+def test_released_greedy_by_hand():
+    rank = np.arange(7)
+    pairs = np.array([[1, 2], [1, 3], [2, 3], [2, 4], [3, 4], [4, 5], [5, 6]])
+    # 1 -> 2 is below the threshold, 1 -> 3 above: 1 joins 3. 2 -> 3: 3 received (0), 2 -> 4 above: 2 joins
+    # 4. 3 and 4 received. 5 -> 6 above: 5 joins 6. The pair (3, 4) and (4, 5) are above too, never taken.
+    sims = np.array([0.3, 0.9, 0.8, 0.6, 0.95, 0.99, 0.7])
+    merged, moves = released_greedy(pairs, sims, 0.5, rank)
+    assert merged.tolist() == [False, True, False, True, False, False, True]
+    assert moves == [(1, 3), (2, 4), (5, 6)]
+    # exactly the threshold does not merge ("miou > miou_th")
+    assert released_greedy(np.array([[1, 2]]), np.array([0.4]), 0.4, np.arange(3))[0].tolist() == [False]
+    # the order is the released numbering: with patch 2 first (rank 1 < 2), 2 gives to 1 and 3 stays alone
+    merged, moves = released_greedy(pairs[:3], np.array([0.9, 0.9, 0.9]), 0.5, np.array([0, 2, 1, 3]))
+    assert merged.tolist() == [True, False, False] and moves == [(2, 1)]
+
+
+def test_released_greedy_takes_the_sets_afresh_per_area():
+    # two conflict areas sharing patch 2: {1, 2, 3} then {2, 4}, every similarity 0.9. Area 1: 1 gives to
+    # 2, whose set empties. Area 2 (sets taken afresh): 2 gives to 4. The released pixel relabelling
+    # (_change_class_id: the pixels carrying the giver's id take the receiver's) carries 1's pixels along:
+    # one instance {1, 2, 4}, and 3 alone. Over one group instead: 1 -> 2 only, 4 alone.
+    pairs = np.array([[1, 2], [1, 3], [2, 3], [2, 4]])
+    sims = np.full(4, 0.9)
+    merged, moves = released_greedy(pairs, sims, 0.5, np.arange(5), groups=[np.array([1, 2, 3]), np.array([2, 4])])
+    assert merged.tolist() == [True, False, False, True] and moves == [(1, 2), (2, 4)]
+    labels = np.zeros((20, 3), np.int32)
+    labels[:, 0] = np.repeat([1, 2, 3, 4], 5)
+    labels[:, 1:] = 1
+    stats = stats_from(labels)
+    areas = merge_view(stats, 0, 4, pairs, 0.5, 0.0, grouping="released_greedy",
+                       groups=[np.array([1, 2, 3]), np.array([2, 4])])
+    assert areas.lut.tolist() == [0, 1, 1, 2, 1]
+    assert merge_view(stats, 0, 4, pairs, 0.5, 0.0, grouping="released_greedy").lut.tolist() == [0, 1, 1, 2, 3]
+    # a giver whose id has already moved takes no pixels along: 1 gives to 2, then (area 2) 1 gives to 3
+    # again: no pixel carries id 1 any more, so 3 stays alone
+    again = merge_view(stats, 0, 4, np.array([[1, 2], [1, 3]]), 0.5, 0.0, grouping="released_greedy",
+                       groups=[np.array([1, 2]), np.array([1, 3])])
+    assert again.merged.tolist() == [True, True] and again.lut.tolist() == [0, 1, 1, 2, 3]
+
+
+def test_released_ids_follow_the_membership_order():
+    # released _get_mask: patches are the sorted unique rows of the pixels' mask-membership vectors.
+    # Patch 1 = (m0, m1) -> (1, 1, 0); patch 2 = (m0) -> (1, 0, 0); patch 3 = (m0, m2) -> (1, 0, 1):
+    # sorted (1,0,0) < (1,0,1) < (1,1,0), i.e. 2, 3, 1
+    h = hierarchy([[0, 1], [0], [0, 2]])
+    assert released_ids(h).tolist() == [0, 3, 1, 2]
+    # so the released loop starts with patch 2: with every sim 1, 2 joins 3, and 1 stays alone
+    labels = np.zeros((15, 3), np.int32)
+    labels[:, 0] = np.repeat([1, 2, 3], 5)
+    labels[:, 1] = labels[:, 2] = 1
+    merges, _ = merge_all(stats_from(labels), [h, whole(1), whole(1)], MergeParams(grouping="released_greedy"))
+    assert merges[0].lut.tolist() == [0, 1, 2, 2]
+
+
+# ----------------------------------------------------------------------------------------------
+# Candidates: the released conflict areas
+# ----------------------------------------------------------------------------------------------
+
+
+def conflict_view() -> PatchHierarchy:
+    """Thirteen patches (pixel counts in brackets) under eleven masks:
+
+    - object A: m0 = {1 [50], 2 [30], 3 [20]}, m1 = {2}, m2 = {3};
+    - object B: m3 = {4 [96], 5 [4]}, m4 = {4} (a near-duplicate of m3);
+    - a lone mask m5 = {6 [10]};
+    - two masks that barely touch: m6 = {7 [100], 8 [1]}, m7 = {8, 9 [100]};
+    - a chain: m8 = {10, 11}, m9 = {11, 12}, m10 = {12, 13} (10 pixels each).
+    """
+    return hierarchy([[0], [0, 1], [0, 2], [3, 4], [3], [5], [6], [6, 7], [7], [8], [8, 9], [9, 10], [10]],
+                     [50, 30, 20, 96, 4, 10, 100, 1, 100, 10, 10, 10, 10])
+
+
+def test_conflict_areas_by_hand():
+    # conflict (masks per patch): 1 1; 2 2; 3 2; 4 2; 5 1; 6 1; 7 1; 8 2; 9 1; 10 1; 11 2; 12 2; 13 1.
+    # - patch 2 first (lowest id of conflict 2): m0, m1, IoU 30 / 100 -> area {1, 2, 3}; conflict left
+    #   in it at 3 (m2): m0, m2, IoU 20 / 100 -> the same area; its largest patch is 50 % -> a conflict area.
+    # - patch 4: m3, m4, IoU 96 / 100 -> area {4, 5}, where patch 4 is 96 % >= 95 %: joined, no vote.
+    # - patch 8: m6, m7, IoU 1 / 201 < 0.05 -> no area (its conflict is taken off patch 8 only).
+    # - patch 11: m8, m9, IoU 10 / 30 -> {10, 11, 12}; conflict left at 12: m9, m10 -> {10, 11, 12, 13}.
+    classes, collapsed, start = conflict_areas(conflict_view())
+    assert [c.tolist() for c in classes] == [[1, 2, 3], [10, 11, 12, 13]]
+    assert [c.tolist() for c in collapsed] == [[4, 5]]
+    # patch 4's membership (m3, m4) sorts after patch 5's (m3) in the released numbering: 5 carries the id
+    assert start.tolist() == [0, 1, 2, 3, 5, 5, 6, 7, 8, 9, 10, 11, 12, 13]
+    c = view_candidates(conflict_view(), "conflict_area")
+    assert c.collapsed.tolist() == [[4, 5]] and [g.tolist() for g in c.groups] == [[1, 2, 3], [10, 11, 12, 13]]
+    assert c.pairs.tolist() == [[1, 2], [1, 3], [2, 3], [10, 11], [10, 12], [10, 13], [11, 12], [11, 13], [12, 13]]
+    # the coarser-mask rule instead: pairs sharing a mask; (7, 8), (8, 9) and (4, 5) are candidates there,
+    # (10, 12), (10, 13), (11, 13) (a chain, no common mask) are not
+    assert candidate_pairs(conflict_view(), "coarser_mask").tolist() == [
+        [1, 2], [1, 3], [2, 3], [4, 5], [7, 8], [8, 9], [10, 11], [11, 12], [12, 13]]
+
+
+def test_a_dominated_area_is_joined_without_a_vote():
+    # patches 1 [96 px] and 2 [4 px] under m0, patch 1 also under m1 (a near-duplicate mask): the released
+    # code relabels the area to one id before the vote. Their Gaussians disagree in every other view.
+    labels = np.zeros((10, 3), np.int32)
+    labels[:, 0] = np.repeat([1, 2], 5)
+    labels[:, 1] = labels[:, 2] = np.repeat([1, 2], 5)
+    views = [hierarchy([[0, 1], [0]], [96, 4]), hierarchy([[0], [1]]), hierarchy([[0], [1]])]
+    coarse, _ = merge_all(stats_from(labels), views, MergeParams())
+    assert coarse[0].pairs.tolist() == [[1, 2]] and coarse[0].sims.tolist() == [0.0] and coarse[0].num_instances == 2
+    for grouping in ("union_find", "released_greedy"):
+        released, _ = merge_all(stats_from(labels), views, MergeParams(candidates="conflict_area", grouping=grouping))
+        assert len(released[0].pairs) == 0 and released[0].collapsed.tolist() == [[1, 2]]
+        assert released[0].num_instances == 1
+    # at 95 % of the area exactly it is still joined; at 94 % it is a conflict area and the vote (0) decides
+    views[0] = hierarchy([[0, 1], [0]], [95, 5])
+    assert merge_all(stats_from(labels), views, MergeParams(candidates="conflict_area"))[0][0].num_instances == 1
+    views[0] = hierarchy([[0, 1], [0]], [94, 6])
+    again, _ = merge_all(stats_from(labels), views, MergeParams(candidates="conflict_area"))
+    assert again[0].pairs.tolist() == [[1, 2]] and again[0].num_instances == 2

@@ -80,7 +80,7 @@ def test_variant_and_inconsistency_defaults_are_the_librarys():
     assert default_inconsistency() == SimulateParams().inconsistency
     assert variant_defaults() == {"preset": "paper", "consistent_masks": True, "density_control": True,
                                   "lifting": "contrastive", "overlay": False, "merge_candidates": "coarser_mask",
-                                  "merge_method": "vote"}
+                                  "merge_method": "vote", "merge_threshold": None}
     assert set(typing.get_args(typing.get_type_hints(Variant)["lifting"])) == set(LIFT_METHODS)
 
 

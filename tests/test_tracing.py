@@ -137,9 +137,13 @@ def test_straddling_patch_is_not_merged_into_either_object():
     assert merges[1].num_instances == 2 and merges[2].num_instances == 2
     # the official threshold (0.4) does merge at 0.5: the preset reaches the code
     # (its minimum support, made for real scenes, would leave these 5-10 Gaussian patches out)
-    official, _ = merge_all(stats, [hierarchy(3, common), hierarchy(2, [[0], [0]]), hierarchy(2, [[0], [0]])],
-                            MergeParams(preset="official", min_gaussians=0, min_gaussian_views=0))
+    views = [hierarchy(3, common), hierarchy(2, [[0], [0]]), hierarchy(2, [[0], [0]])]
+    official, _ = merge_all(stats, views, MergeParams(preset="official", min_gaussians=0, min_gaussian_views=0,
+                                                      grouping="union_find"))
     assert official[0].num_instances == 1
+    # the official grouping, the released greedy loop: L joins S, which then takes no one else -> {L, S}, {R}
+    official, _ = merge_all(stats, views, MergeParams(preset="official", min_gaussians=0, min_gaussian_views=0))
+    assert official[0].lut.tolist() == [0, 1, 1, 2]
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

@@ -350,6 +350,35 @@ def test_all_pairs_variant_has_its_own_merge_and_refine(tmp_path):
     assert "--gaussians results/a/refine-paper-merged " in lifts["results/a/full/lift"]
 
 
+def test_threshold_variant_has_its_own_merge_and_refine(tmp_path):
+    """merge_threshold: 0.4 runs the merge at that threshold into merge-<preset>-t0.4 (with all pairs:
+    merge-<preset>-all-t0.4) and refines on those maps; the preset's folders stay as they are."""
+    config = {"scenes": {"a": {"kind": "synthetic"}},
+              "variants": {"full": {}, "full_t04": {"merge_threshold": 0.4},
+                           "all_t03": {"merge_candidates": "all_pairs", "merge_threshold": 0.3},
+                           "official_t05": {"preset": "official", "merge_threshold": 0.5, "density_control": False}}}
+    result = run_snakemake(tmp_path, "-n", "-p", "reproduce", config=config)
+    assert result.returncode == 0, result.stderr[-3000:]
+    shells = [line[line.index("trace3d "):] for line in result.stdout.splitlines() if "trace3d --threads" in line]
+    merges = {line.split("--out ")[1].split()[0]: line for line in shells if " merge --scene" in line}
+    assert sorted(merges) == ["results/a/merge-official-t0.5", "results/a/merge-paper",
+                              "results/a/merge-paper-all-t0.3", "results/a/merge-paper-t0.4"]
+    assert '"threshold": 0.4' in merges["results/a/merge-paper-t0.4"]
+    assert "candidates" not in merges["results/a/merge-paper-t0.4"]
+    assert '"candidates": "all_pairs"' in merges["results/a/merge-paper-all-t0.3"]
+    assert '"threshold": 0.3' in merges["results/a/merge-paper-all-t0.3"]
+    assert '"preset": "official"' in merges["results/a/merge-official-t0.5"]
+    assert "threshold" not in merges["results/a/merge-paper"]
+    lifts = {line.split("--out ")[1].split()[0]: line for line in shells if " lift --scene" in line}
+    assert ("--gaussians results/a/refine-paper-merged-t0.4 --labels results/a/merge-paper-t0.4/instances "
+            in lifts["results/a/full_t04/lift"])
+    assert ("--gaussians results/a/refine-paper-mergedall-t0.3 --labels results/a/merge-paper-all-t0.3/instances "
+            in lifts["results/a/all_t03/lift"])
+    assert "--labels results/a/merge-official-t0.5/instances " in lifts["results/a/official_t05/lift"]
+    refines = [line for line in shells if " refine --scene" in line]
+    assert any("--labels results/a/merge-paper-t0.4/instances" in line for line in refines)
+
+
 def test_hierarchical_variant_has_its_own_merge_and_refine(tmp_path):
     """merge_method: hierarchical runs the merge with method hierarchical into merge-<preset>-hier and refines
     on those maps, beside the paper's merge."""

@@ -6,15 +6,17 @@ consistent instance map (label 0 = unlabelled, never sampled) and minimises
 
     L = -1/|U| sum_u log( sum_{u' in U+(u)} k(u, u') / sum_{u' in U} k(u, u') )
 
-where U+(u) are the sampled pixels of u's instance (u itself included, so a pixel alone in its
-instance contributes log of its own share). The kernel k is the preset's:
+where U+(u) are the sampled pixels of u's instance. The kernel k and U+(u) are the preset's:
 
-- ``official`` (the released code: Contrastive Lift's loss): k = exp(-||F[u] - F[u']||^2 / tau),
-  tau = 100 between pixels of the same instance and 1 between different instances; 4,096 pixels
-  per iteration, 20,000 iterations, Adam lr 0.005 on the features only.
-- ``printed`` (the paper as printed): k = exp(sim), sim = exp(-tau ||f1 - f2||^2), tau = 0.01, lr 1e-5.
+- ``official`` (the released code, ``utils/loss_utils.py``'s ``contrastive_loss``, after Contrastive
+  Lift): k = exp(exp(-||F[u] - F[u']||^2 / tau)), tau = 100 between two pixels of the same instance
+  and 1 otherwise; U+(u) leaves u itself out (its k = e stays in the denominator), and an anchor with
+  no other pixel of its instance adds nothing (the mean still divides by |U|); 4,096 pixels per
+  iteration, 20,000 iterations, Adam lr 0.005 on the features only.
+- ``printed`` (the paper as printed): k = exp(sim), sim = exp(-tau ||f1 - f2||^2), tau = 0.01, lr 1e-5;
+  U+(u) holds u itself (so a pixel alone in its instance contributes log of its own share).
 - ``gaussian``: k = exp(-tau ||f1 - f2||^2) with one temperature (the printed similarity used directly
-  as the kernel, i.e. without the outer exp).
+  as the kernel, i.e. without the outer exp); U+(u) holds u.
 
 The ``paper`` preset is the printed kernel with the released code's learning rate (0.005), counts and
 pixels: at the printed lr 1e-5 the loss does not move in 1,500 iterations on a default room, at
@@ -101,7 +103,7 @@ class ContrastiveParams:
 def _kernels(kernel: str, temperature: float, temperature_pos: float, temperature_neg: float):
     """(k_pos, k_neg): the kernel as a function of d^2 within an instance and across instances."""
     if kernel == "official":
-        return (lambda d2: torch.exp(-d2 / temperature_pos)), (lambda d2: torch.exp(-d2 / temperature_neg))
+        return (lambda d2: torch.exp(torch.exp(-d2 / temperature_pos))), (lambda d2: torch.exp(torch.exp(-d2 / temperature_neg)))
     if kernel == "gaussian":
         k = lambda d2: torch.exp(-temperature * d2)  # noqa: E731
         return k, k
@@ -122,8 +124,10 @@ def contrastive_loss(features: Tensor, labels: Tensor, kernel: str = "official",
     Cheap form: pixels are sorted by instance, so the positives of an anchor are one diagonal block.
     The denominator is the cross-instance kernel summed over the whole row (one [chunk, P] pass, no
     masks) plus, on the diagonal blocks only, (k_pos - k_neg); the numerator is k_pos summed over the
-    block. Every kernel value is in (0, e] and the numerator holds the anchor itself (k(0) >= 1), so
-    no log-sum-exp shifting is needed.
+    block (``official``: without the anchor's own entry; anchors with no other pixel of their instance
+    add nothing). Every kernel value is in (0, e], and the numerator is either empty (left out) or
+    holds at least one value >= 1 for ``official`` (exp of a positive number) or the anchor's own
+    k(0) >= 1, so no log-sum-exp shifting is needed.
 
     Args:
         features: [P, D] rendered features.
@@ -131,13 +135,14 @@ def contrastive_loss(features: Tensor, labels: Tensor, kernel: str = "official",
         kernel: "official", "printed" or "gaussian".
         chunk: anchor rows per block of the full pass (bounds memory at chunk x P).
     Returns:
-        scalar loss (mean over the P anchors).
+        scalar loss (the anchors' sum over P).
     """
     p = features.shape[0]
     if p == 0:
         return features.sum() * 0.0
     k_pos, k_neg = _kernels(kernel, temperature, temperature_pos, temperature_neg)
     same_kernel = kernel != "official" or temperature_pos == temperature_neg
+    without_self = kernel == "official"
     lab, order = torch.sort(labels, stable=True)
     f = features[order]
     den = torch.cat([k_neg(_sq_dist(f[a:a + chunk], f)).sum(1) for a in range(0, p, chunk)])
@@ -148,14 +153,18 @@ def contrastive_loss(features: Tensor, labels: Tensor, kernel: str = "official",
         fb = f[start:start + n]
         d2 = _sq_dist(fb, fb)
         kp = k_pos(d2)
-        nums.append(kp.sum(1))
+        nums.append((kp * (1.0 - torch.eye(n, dtype=kp.dtype)) if without_self else kp).sum(1))
         if not same_kernel:
             fixes.append((kp - k_neg(d2)).sum(1))
         start += n
     num = torch.cat(nums)
     if fixes:
         den = den + torch.cat(fixes)
-    return (torch.log(den) - torch.log(num)).mean()
+    if not without_self:
+        return (torch.log(den) - torch.log(num)).mean()
+    counted = num > 0
+    terms = torch.log(den) - torch.log(torch.where(counted, num, torch.ones_like(num)))
+    return torch.where(counted, terms, torch.zeros_like(terms)).sum() / p
 
 
 def contrastive_loss_reference(features: Tensor, labels: Tensor, **kwargs) -> Tensor:
@@ -167,13 +176,21 @@ def contrastive_loss_reference(features: Tensor, labels: Tensor, **kwargs) -> Te
         d2 = ((f[u][None] - f) ** 2).sum(1)
         same = labels == labels[u]
         if kernel == "official":
-            k = torch.exp(-d2 / torch.where(same, kwargs.get("temperature_pos", 100.0), kwargs.get("temperature_neg", 1.0)))
-        elif kernel == "gaussian":
+            tau = torch.where(same, kwargs.get("temperature_pos", 100.0), kwargs.get("temperature_neg", 1.0))
+            k = torch.exp(torch.exp(-d2 / tau.double()))
+            others = same.clone()
+            others[u] = False
+            if others.any():
+                terms.append(-torch.log(k[others].sum() / k.sum()))
+            continue
+        if kernel == "gaussian":
             k = torch.exp(-kwargs.get("temperature", 0.01) * d2)
         else:
             k = torch.exp(torch.exp(-kwargs.get("temperature", 0.01) * d2))
         terms.append(-torch.log(k[same].sum() / k.sum()))
-    return torch.stack(terms).mean()
+    if not terms:
+        return f.sum() * 0.0
+    return torch.stack(terms).sum() / f.shape[0]
 
 
 def loss_kwargs(p: ContrastiveParams) -> dict:

@@ -59,14 +59,15 @@ log = logging.getLogger(__name__)
 
 PRESET_VALUES = {
     "paper": {"threshold": 0.5, "min_visibility": 0.0, "uncovered": "exclude", "min_gaussians": 0,
-              "min_view_share": 0.0, "min_views": 1, "min_gaussian_views": 0},
+              "min_view_share": 0.0, "min_views": 1, "min_gaussian_views": 0, "grouping": "union_find"},
     # merge_patches.py / utils/con_mask_utils.py of the released code: an unseen Gaussian is one with
     # zero weight (its 25-pixel threshold belongs to the refine script, remove_ab_gaus.py), label 0 is
     # invalid (valid_weight_mask), a patch needs more than GAUS_NUM_TH = 100 Gaussians, a view votes
     # when more than vf_th = 0.2 of both sets are valid there, at least 2 such views, and a Gaussian
-    # votes with more than 2 valid voting views (filter_weights' ct_th + 1 below 160 views).
+    # votes with more than 2 valid voting views (filter_weights' ct_th + 1 below 160 views); the pairs are
+    # grouped by the released loop of SegmentationMask.repair (released_greedy: at most 2 patches a group).
     "official": {"threshold": 0.4, "min_visibility": 0.0, "uncovered": "exclude", "min_gaussians": 100,
-                 "min_view_share": 0.2, "min_views": 2, "min_gaussian_views": 3},
+                 "min_view_share": 0.2, "min_views": 2, "min_gaussian_views": 3, "grouping": "released_greedy"},
 }
 
 # The hierarchical method's threshold on its mask-level similarity, chosen on the development rooms
@@ -82,9 +83,16 @@ class MergeParams:
     min_visibility: a Gaussian sees a view when its GIT visibility exceeds this (both presets 0.0:
         any weight, the released merge_patches.py's "unseen = zero weight").
     candidates: which pairs of a view are compared: ``coarser_mask`` (default), the pairs of
-        patches inside a common coarser mask (supplementary, "Scalability of patch merging"; the
-        released code's conflict areas); ``all_pairs``, every pair of patches of the view (the
-        paper's main text, Sec. 3.3).
+        patches inside a common coarser mask (supplementary, "Scalability of patch merging");
+        ``all_pairs``, every pair of patches of the view (the paper's main text, Sec. 3.3);
+        ``conflict_area``, the released code's rule (:func:`conflict_areas`): the patches of one
+        "conflict area", a union of masks that overlap transitively (IoU >= 0.05), where an area
+        that one patch fills to 95 % is joined into one instance without a vote.
+    grouping: how the pairs above the threshold become instances: ``union_find`` (paper preset),
+        every such pair joined, transitively; ``released_greedy`` (official preset), the released
+        ``SegmentationMask.repair`` loop (:func:`released_greedy`): each patch, in the released ids'
+        order, joins the first later candidate above the threshold, whose Gaussian set then empties,
+        so no instance holds more than 2 patches.
     uncovered: label 0 (pixels no mask covers) in the vote: ``exclude`` (both presets; the released
         code's valid_weight_mask): no vote; ``label``: an ordinary label, two uncovered Gaussians agree.
     min_gaussians: a patch takes part only with more than this many Gaussians (official 100:
@@ -94,10 +102,11 @@ class MergeParams:
     min_views: a pair with fewer voting views is not merged (official 2; paper 1).
     min_gaussian_views: a Gaussian votes only with a vote in at least this many of the pair's
         voting views (official 3; paper 0).
-    method: ``vote`` (both presets): the paper's argmax-patch vote, pairs joined by union-find;
+    method: ``vote`` (both presets): the paper's argmax-patch vote, pairs grouped by ``grouping``;
         ``hierarchical`` (beyond the paper, :mod:`.consistency`): the mask-level vote (do the two
         patches' Gaussians lie under a common mask of the other views), every pair of the view
-        compared, groups by average linkage; ``candidates`` and the minimum-support keys do not apply.
+        compared, groups by average linkage; ``candidates``, ``grouping`` and the minimum-support keys
+        do not apply.
     mask_weight: (``hierarchical``) what a common mask of another view counts for, against 1 for the
         same patch there: 0 is the paper's vote, 1 the plain mask-level vote.
     association_share: the mutual-majority share that links instances across views.
@@ -107,7 +116,8 @@ class MergeParams:
     preset: Literal["paper", "official"] = "paper"
     threshold: float | None = None
     min_visibility: float | None = None
-    candidates: Literal["coarser_mask", "all_pairs"] = "coarser_mask"
+    candidates: Literal["coarser_mask", "all_pairs", "conflict_area"] = "coarser_mask"
+    grouping: Literal["union_find", "released_greedy"] | None = None
     uncovered: Literal["exclude", "label"] | None = None
     min_gaussians: int | None = None
     min_view_share: float | None = None
@@ -468,6 +478,7 @@ class ViewMerge:
     omega: np.ndarray  # [K]
     merged: np.ndarray  # [K] bool
     supported: np.ndarray | None = None  # [K] bool: the pair had the rule's minimum support
+    collapsed: np.ndarray | None = None  # [C, 2] pairs joined without a vote (conflict_area's dominated areas)
 
     @property
     def num_instances(self) -> int:
@@ -476,24 +487,200 @@ class ViewMerge:
 
 def candidate_pairs(hierarchy, candidates: str) -> np.ndarray:
     """[K, 2] patch pairs (a < b) of one view compared by the merge: ``coarser_mask``, the pairs
-    inside a common coarser mask (:meth:`PatchHierarchy.candidate_pairs`); ``all_pairs``, all of them."""
+    inside a common coarser mask (:meth:`PatchHierarchy.candidate_pairs`); ``all_pairs``, all of them;
+    ``conflict_area``, the pairs inside one of the released code's conflict areas (:func:`conflict_areas`)."""
+    return view_candidates(hierarchy, candidates).pairs
+
+
+@dataclass
+class ViewCandidates:
+    """What the candidate rule gives the vote and the grouping of one view.
+
+    pairs: [K, 2] candidate pairs (a < b).
+    collapsed: [C, 2] pairs joined without a vote (``conflict_area``: the areas one patch fills to
+        :data:`CONFLICT_DOMINANCE`; empty otherwise).
+    groups: the candidate groups in the released loop's order (``conflict_area``: the conflict areas'
+        ids); ``None``: one group, every candidate pair.
+    start: [P + 1] the id each patch carries before the vote (``conflict_area``: a dominated area's
+        patches carry one of them); ``None``: its own.
+    """
+
+    pairs: np.ndarray
+    collapsed: np.ndarray
+    groups: list | None = None
+    start: np.ndarray | None = None
+
+
+def view_candidates(hierarchy, candidates: str) -> ViewCandidates:
+    """The candidate pairs of one view (:func:`candidate_pairs`) with what the grouping needs."""
+    none = np.zeros((0, 2), np.int64)
     if candidates == "coarser_mask":
-        return hierarchy.candidate_pairs()
+        return ViewCandidates(hierarchy.candidate_pairs(), none)
     if candidates == "all_pairs":
         a, b = np.triu_indices(hierarchy.num_patches + 1, k=1)
         keep = a > 0
-        return np.stack([a[keep], b[keep]], axis=1).astype(np.int64)
-    raise ValueError(f"candidates must be coarser_mask or all_pairs, got {candidates!r}")
+        return ViewCandidates(np.stack([a[keep], b[keep]], axis=1).astype(np.int64), none)
+    if candidates == "conflict_area":
+        classes, collapsed, start = conflict_areas(hierarchy)
+        return ViewCandidates(_pairs_within(classes, hierarchy.num_patches),
+                              _pairs_within(collapsed, hierarchy.num_patches), classes, start)
+    raise ValueError(f"candidates must be coarser_mask, all_pairs or conflict_area, got {candidates!r}")
+
+
+def _pairs_within(groups: Sequence[np.ndarray], num_patches: int) -> np.ndarray:
+    """[K, 2] unique pairs (a < b) of patches that share one of ``groups``."""
+    keys = []
+    for g in groups:
+        g = np.sort(np.asarray(g, np.int64))
+        a, b = np.triu_indices(len(g), k=1)
+        keys.append(g[a] * (num_patches + 1) + g[b])
+    keys = np.unique(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
+    return np.stack([keys // (num_patches + 1), keys % (num_patches + 1)], axis=1).astype(np.int64)
+
+
+# The released code's conflict areas (utils/con_mask_utils.py, SegmentationMask._union_area / _get_c_area):
+# a set of masks joins an area when the pixels two or more of them cover are at least this share of the
+# pixels any of them covers ...
+CONFLICT_IOU = 0.05
+# ... and an area one patch fills to this share is joined into one instance, without a vote.
+CONFLICT_DOMINANCE = 0.95
+
+
+def released_ids(hierarchy) -> np.ndarray:
+    """[P + 1] int64: each patch's rank in the released code's patch numbering (``_get_mask``: the
+    sorted unique rows of the per-pixel mask-membership vectors, i.e. the patches in lexicographic order
+    of their membership, mask 0 most significant, uncovered first), ties by patch id. Row 0 is 0."""
+    member = hierarchy.membership()
+    count = len(member)
+    if member.shape[1] == 0:
+        return np.arange(count, dtype=np.int64)
+    order = np.lexsort(tuple(member[:, m] for m in range(member.shape[1] - 1, -1, -1)))
+    rank = np.empty(count, np.int64)
+    rank[order] = np.arange(count)
+    return rank
+
+
+def conflict_areas(hierarchy, iou: float = CONFLICT_IOU,
+                   dominance: float = CONFLICT_DOMINANCE) -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray]:
+    """The released code's conflict areas of one view, computed on the patches (docs/tracing.md).
+
+    The released ``SegmentationMask`` works on pixels: ``conflict`` counts the masks over each pixel;
+    while some pixel has conflict > 1, the masks over the first such pixel of maximal conflict (raster
+    order) are united when their IoU (pixels under two or more of them / pixels under any) is at least
+    ``iou`` (their counts are then taken off ``conflict``; below it, only off the pixels they share),
+    and the area grows by the masks over its first pixel of maximal remaining conflict until none is
+    left. An area that one patch fills to ``dominance`` is relabelled to one id (no vote); the others
+    are conflict areas, whose patches the vote compares. Every pixel of a patch has the same masks, so
+    the same steps run on the patches, weighted by their pixel counts (the masks are the unions of the
+    patches that list them; the patch step's absorbed slivers are counted in their patch), and "the
+    first pixel" is the lowest patch id (ids follow the raster order of the first pixel).
+
+    Returns:
+        the conflict areas' candidate groups in the order found (each: the patches standing for its
+        distinct ids, more than one), the dominated areas' patches (each joined into one instance) and
+        [P + 1] the patch whose id each patch carries after those joins.
+    """
+    member = hierarchy.membership()  # [P + 1, M]
+    area = np.zeros(len(member), np.int64)
+    area[1:] = hierarchy.patch_areas
+    conflict = member.sum(axis=1).astype(np.int64)
+    rank = released_ids(hierarchy)
+    current = np.arange(len(member))  # the patch whose id each patch carries (a dominated area takes one)
+
+    def union_of(masks: np.ndarray) -> np.ndarray | None:
+        temp = member[:, masks].sum(axis=1)
+        union, inter = temp > 0, temp > 1
+        if area[inter].sum() / max(area[union].sum(), 1) < iou:
+            conflict[inter] -= temp[inter]
+            return None
+        conflict[:] -= temp
+        return union
+
+    areas, collapsed = [], []
+    while conflict.max(initial=0) > 1:
+        found = union_of(member[int(np.argmax(conflict))])
+        if found is None:
+            continue
+        while conflict[found].max() > 0:
+            grown = union_of(member[int(np.argmax(np.where(found, conflict, 0)))])
+            if grown is not None:
+                found |= grown
+        ids = current[found]
+        weight = np.bincount(ids, weights=area[found], minlength=len(member))
+        patches = np.nonzero(found)[0]
+        if weight.max() / max(area[found].sum(), 1) < dominance:
+            areas.append(patches)
+        else:
+            keep = np.unique(ids)
+            current[found] = keep[np.argmin(rank[keep])]
+            collapsed.append(patches)
+    classes = []
+    for patches in areas:
+        ids = np.unique(current[patches])
+        if len(ids) > 1:
+            classes.append(ids)
+    return classes, collapsed, current
+
+
+def released_greedy(pairs: np.ndarray, sims: np.ndarray, threshold: float, rank: np.ndarray,
+                    groups: Sequence[np.ndarray] | None = None) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """The candidate pairs the released loop (``SegmentationMask.repair``) merges: [K] bool, and the
+    merges (giver, receiver) in the loop's order.
+
+    Per group (``groups``: the conflict areas in order; ``None``: one group of every pair), patches are
+    visited in the released numbering (``rank``, :func:`released_ids`); each compares itself with its
+    later candidates of the group in that order and joins the first one whose similarity exceeds
+    ``threshold``; the receiver's Gaussian set is then intersected with the giver's
+    (``c_w_masks[j] & c_w_masks[0]``), which is empty (a Gaussian has one argmax patch per view), so the
+    receiver's similarity to every later patch is 0 (``cal_miou`` with no Gaussians): it neither gives
+    nor receives again within the group. Within one group every instance holds at most 2 patches; the
+    sets are taken afresh for every group, as the released loop does for every conflict area.
+    """
+    pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+    merged = np.zeros(len(pairs), bool)
+    moves: list[tuple[int, int]] = []
+    if not len(pairs):
+        return merged, moves
+    swap = rank[pairs[:, 0]] > rank[pairs[:, 1]]
+    first = np.where(swap, pairs[:, 1], pairs[:, 0])
+    later = np.where(swap, pairs[:, 0], pairs[:, 1])
+    order = np.lexsort((rank[later], rank[first]))
+    top = int(pairs.max()) + 1
+    for group in ([None] if groups is None else groups):
+        if group is None:
+            inside = np.ones(len(pairs), bool)
+        else:
+            group = np.asarray(group, np.int64)
+            member = np.zeros(max(top, int(group.max(initial=0)) + 1), bool)
+            member[group] = True
+            inside = member[first] & member[later]
+        done = np.zeros(top, bool)  # gave (left the list) or received (emptied)
+        for k in order:
+            a, b = first[k], later[k]
+            if not inside[k] or done[a] or done[b]:
+                continue
+            if sims[k] > threshold:
+                merged[k] = True
+                done[a] = done[b] = True
+                moves.append((int(a), int(b)))
+    return merged, moves
 
 
 def merge_view(stats: GITStats, view: int, num_patches: int, pairs: np.ndarray, threshold: float,
                min_visibility: float, hist: np.ndarray | None = None, rule: VoteRule = VoteRule(),
-               visible: np.ndarray | None = None) -> ViewMerge:
+               visible: np.ndarray | None = None, grouping: str = "union_find", rank: np.ndarray | None = None,
+               collapsed: np.ndarray | None = None, groups: Sequence[np.ndarray] | None = None,
+               start: np.ndarray | None = None) -> ViewMerge:
     """Merge the patches of view ``view`` (ids 1..num_patches; 0 is uncovered and never merged).
 
     ``hist``: the view's [A, L, T] source histograms when already computed (:func:`all_source_histograms`);
     ``rule``: which Gaussians and views vote (default: the paper preset's); ``visible``: [N, L]
-    ``stats.visible(min_visibility)`` when already computed.
+    ``stats.visible(min_visibility)`` when already computed. ``grouping``: ``union_find`` joins every
+    pair above the threshold; ``released_greedy`` the pairs :func:`released_greedy` picks, in the order
+    ``rank`` ([P + 1], :func:`released_ids`; default: patch ids), per group of ``groups`` (default: one).
+    ``collapsed``: [C, 2] pairs joined without a vote; ``start``: [P + 1] the id each patch carries
+    before the vote (the released grouping relabels ids as the released code relabels pixels: a giver's
+    id becomes the receiver's, for every patch carrying it; default: its own).
     """
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
     if visible is None:
@@ -526,17 +713,34 @@ def merge_view(stats: GITStats, view: int, num_patches: int, pairs: np.ndarray, 
             sims, omega = _vote_per_gaussian(masked, by_patch, pairs, views, supported, rule, num_labels)
     else:
         sims, omega, supported = vote(hist, pairs, counts, rule)
-    merged = sims > threshold
-    uf = UnionFind(num_patches + 1)
-    for (a, b), m in zip(pairs, merged):
-        if m:
+    collapsed = np.zeros((0, 2), np.int64) if collapsed is None else np.asarray(collapsed, np.int64).reshape(-1, 2)
+    if grouping == "union_find":
+        merged = sims > threshold
+        uf = UnionFind(num_patches + 1)
+        for (a, b), m in zip(pairs, merged):
+            if m:
+                uf.union(int(a), int(b))
+        for a, b in collapsed:
             uf.union(int(a), int(b))
-    roots = np.array([uf.find(p) for p in range(num_patches + 1)])
+        roots = np.array([uf.find(p) for p in range(num_patches + 1)])
+    elif grouping == "released_greedy":
+        merged, moves = released_greedy(pairs, sims, threshold, np.arange(num_patches + 1) if rank is None else rank,
+                                        groups)
+        roots = np.arange(num_patches + 1) if start is None else np.asarray(start, np.int64).copy()
+        if start is None:
+            uf = UnionFind(num_patches + 1)
+            for a, b in collapsed:
+                uf.union(int(a), int(b))
+            roots = np.array([uf.find(p) for p in range(num_patches + 1)])
+        for a, b in moves:  # _change_class_id: the pixels carrying the giver's id take the receiver's
+            roots[roots == a] = b
+    else:
+        raise ValueError(f"grouping must be union_find or released_greedy, got {grouping!r}")
     lut = np.zeros(num_patches + 1, np.int64)
-    order = {r: k + 1 for k, r in enumerate(sorted(set(roots[1:].tolist())))}
-    for p in range(1, num_patches + 1):
-        lut[p] = order[roots[p]]
-    return ViewMerge(stats.frames[view], lut, pairs, sims, omega, merged, supported)
+    order: dict = {}
+    for p in range(1, num_patches + 1):  # instances numbered by their lowest patch
+        lut[p] = order.setdefault(int(roots[p]), len(order) + 1)
+    return ViewMerge(stats.frames[view], lut, pairs, sims, omega, merged, supported, collapsed)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -837,9 +1041,11 @@ def merge_all(stats: GITStats | GITVisible, hierarchies: Sequence,
             lut = average_linkage(hierarchy.num_patches, pairs, sims, omega, params.threshold)
             merges.append(ViewMerge(stats.frames[v], lut, pairs, sims, omega, sims > params.threshold))
             continue
-        pairs = candidate_pairs(hierarchy, params.candidates)
-        merges.append(merge_view(stats, v, hierarchy.num_patches, pairs, params.threshold, params.min_visibility,
-                                 hist=hist, rule=rule, visible=visible))
+        c = view_candidates(hierarchy, params.candidates)
+        rank = released_ids(hierarchy) if params.grouping == "released_greedy" else None
+        merges.append(merge_view(stats, v, hierarchy.num_patches, c.pairs, params.threshold, params.min_visibility,
+                                 hist=hist, rule=rule, visible=visible, grouping=params.grouping, rank=rank,
+                                 collapsed=c.collapsed, groups=c.groups, start=c.start))
     hist = None  # the last histogram block
     every.close()  # zip stops on the hierarchies: the generator would hold its per-Gaussian lists
     luts = associate(stats, merges, params.min_visibility, params.association_share, visible=visible)
@@ -887,6 +1093,7 @@ def run_merge(scene, git_dir: Path, patches_dir: Path, out_dir: Path, params: di
             "frame": m.frame, "patches": int(len(m.lut) - 1), "instances": m.num_instances,
             "pairs_considered": int(len(m.pairs)),
             "unsupported": int((~m.supported).sum()) if m.supported is not None else 0,
+            "collapsed": [[int(a), int(b)] for a, b in m.collapsed] if m.collapsed is not None else [],
             "merged": [[int(a), int(b), round(float(s), 4)] for (a, b), s, ok in zip(m.pairs, m.sims, m.merged) if ok],
             "similarities": [[int(a), int(b), round(float(s), 4), int(o)] for (a, b), s, o in zip(m.pairs, m.sims, m.omega)],
         })
@@ -897,6 +1104,7 @@ def run_merge(scene, git_dir: Path, patches_dir: Path, out_dir: Path, params: di
         "mean_instances": float(np.mean([m.num_instances for m in merges])) if merges else 0.0,
         "merged_pairs": int(sum(int(m.merged.sum()) for m in merges)),
         "pairs_considered": int(sum(len(m.pairs) for m in merges)),
+        "collapsed_pairs": int(sum(len(m.collapsed) for m in merges if m.collapsed is not None)),
     }
     if scene is not None and scene.has_instances and scene.objects is not None:
         table = scene.objects.lookup(p.ground_truth_level)

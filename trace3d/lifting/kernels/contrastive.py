@@ -6,8 +6,10 @@ For P sampled pixels sorted by instance (block [s_u, e_u) = u's instance), featu
 
     den_u = sum_v k_uv,  num_u = sum_{v in block(u)} k_uv,  L = 1/P sum_u (log den_u - log num_u)
 
-with k_uv = k_pos(d2_uv) inside a block and k_neg(d2_uv) across blocks, d2_uv = ||f_u - f_v||^2. Because
-k is symmetric in (u, v), the gradient collects both roles of a pair:
+with k_uv = k_pos(d2_uv) inside a block and k_neg(d2_uv) across blocks, d2_uv = ||f_u - f_v||^2 (kind 2,
+the released loss: num_u leaves v = u out, and an anchor whose num_u is then empty adds nothing, its
+1/den_u and 1/num_u taken as 0 below). Because k is symmetric in (u, v), the gradient collects both
+roles of a pair:
 
     dL/df_u = 2/P sum_v  c_uv (f_u - f_v),
     c_uv = k'(d2_uv) (1/den_u + 1/den_v) - [v in block(u)] k_pos'(d2_uv) (1/num_u + 1/num_v)
@@ -19,8 +21,9 @@ products with the features (c [f, 1] for the tile's rows and c^T [f, 1] for its 
 writes its own partial sums, added in a fixed order afterwards, so the result does not depend on the
 thread count. Float32 pair arithmetic with own vectorisable exps (relative error ~4e-6); sample and
 feature sizes are padded to the tile and vector widths with pixels of weight 0. Kernels (``kind``):
-0 = exp(-a d2) (``official`` with a_pos = 1/tau_pos, a_neg = 1/tau_neg; ``gaussian`` with a = tau), 1 =
-exp(exp(-a d2)) (``printed``).
+0 = exp(-a d2) (``gaussian``, a = tau), 1 = exp(exp(-a d2)) (``printed``), 2 = exp(exp(-a d2)) without the anchor in its own numerator (``official``:
+the released code's loss, a_pos = 1/tau_pos, a_neg = 1/tau_neg). The anchor's own pair (d2 = 0) has no
+gradient; kind 2 gives it k' = 0 outright.
 """
 
 from __future__ import annotations
@@ -150,8 +153,15 @@ def _pair_tiles(ft, norms, starts, ends, valid, a_pos, a_neg, kind, ti, tj, dkt,
             wu = valid[u0 + u]
             drow = dk[u]
             lo, hi = _anchor_span(starts, ends, u0 + u, v0)
-            s_num = _kernel_span(grow, nu, nv, wu, wv, a_pos, kind, lo, hi, drow, col_den, col_num, True)
-            s_den = _kernel_span(grow, nu, nv, wu, wv, a_neg, kind, 0, lo, drow, col_den, col_num, False)
+            if kind == 2 and i == j:  # the anchor itself (column u of a diagonal tile): denominator only
+                s_num = _kernel_span(grow, nu, nv, wu, wv, a_pos, kind, lo, u, drow, col_den, col_num, True)
+                s_num += _kernel_span(grow, nu, nv, wu, wv, a_pos, kind, u + 1, hi, drow, col_den, col_num, True)
+                s_den = _kernel_span(grow, nu, nv, wu, wv, a_pos, kind, u, u + 1, drow, col_den, col_num, False)
+                drow[u] = np.float32(0.0)
+            else:
+                s_num = _kernel_span(grow, nu, nv, wu, wv, a_pos, kind, lo, hi, drow, col_den, col_num, True)
+                s_den = np.float32(0.0)
+            s_den += _kernel_span(grow, nu, nv, wu, wv, a_neg, kind, 0, lo, drow, col_den, col_num, False)
             s_den += _kernel_span(grow, nu, nv, wu, wv, a_neg, kind, hi, TILE, drow, col_den, col_num, False)
             pden[j, u0 + u] = s_den + s_num
             pnum[j, u0 + u] = s_num
@@ -328,9 +338,10 @@ def _sums(pden, pnum, p):
     inv_num = np.zeros(pp, np.float32)
     loss = 0.0
     for u in range(p):
-        loss += np.log(den[u] / num[u])
-        inv_den[u] = 1.0 / den[u]
-        inv_num[u] = 1.0 / num[u]
+        if num[u] > 0.0:  # 0 only for kind 2's anchors alone in their instance: no term, no gradient
+            loss += np.log(den[u] / num[u])
+            inv_den[u] = 1.0 / den[u]
+            inv_num[u] = 1.0 / num[u]
     return loss / p, inv_den, inv_num
 
 
@@ -404,7 +415,7 @@ def loss_and_grad(features: np.ndarray, labels: np.ndarray, consts: tuple, want_
 def kernel_constants(kernel: str, temperature: float, temperature_pos: float, temperature_neg: float):
     """(a_pos, a_neg, kind) of the fused kernel for a kernel name and its temperatures."""
     if kernel == "official":
-        return 1.0 / temperature_pos, 1.0 / temperature_neg, 0
+        return 1.0 / temperature_pos, 1.0 / temperature_neg, 2
     if kernel == "gaussian":
         return float(temperature), float(temperature), 0
     if kernel == "printed":
