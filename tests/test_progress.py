@@ -26,7 +26,8 @@ def _start(minutes, rule, jobid, threads=None, local=False):
 
 
 def _finish(minutes, rule, jobid, done, total):
-    return [_stamp(minutes), f"Finished jobid: {jobid} (Rule: {rule})", f"{done} of {total} steps ({done * 100 // total}%) done"]
+    return [_stamp(minutes), f"Finished jobid: {jobid} (Rule: {rule})",
+            f"{done} of {total} steps ({done * 100 // total}%) done"]
 
 
 def _log(tmp_path, body, stats):
@@ -147,7 +148,8 @@ def test_report_logs_are_not_runs(tmp_path):
     lint.write_text("Congratulations, your workflow is in a good condition!\n")
     assert newest_log(tmp_path) == run_log
     nothing = run_log.parent / "2026-11-28T230000.000000.snakemake.log"
-    nothing.write_text("Building DAG of jobs...\nNothing to be done (all requested files are present and up to date).\n")
+    nothing.write_text("Building DAG of jobs...\n"
+                       "Nothing to be done (all requested files are present and up to date).\n")
     assert newest_log(tmp_path) == nothing
     assert "nothing to be done" in progress_text(tmp_path / "results", workdir=tmp_path)
 

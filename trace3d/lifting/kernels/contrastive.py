@@ -21,7 +21,8 @@ products with the features (c [f, 1] for the tile's rows and c^T [f, 1] for its 
 writes its own partial sums, added in a fixed order afterwards, so the result does not depend on the
 thread count. Float32 pair arithmetic with own vectorisable exps (relative error ~4e-6); sample and
 feature sizes are padded to the tile and vector widths with pixels of weight 0. Kernels (``kind``):
-0 = exp(-a d2) (``gaussian``, a = tau), 1 = exp(exp(-a d2)) (``printed``), 2 = exp(exp(-a d2)) without the anchor in its own numerator (``official``:
+0 = exp(-a d2) (``gaussian``, a = tau), 1 = exp(exp(-a d2)) (``printed``), 2 = exp(exp(-a d2)) without the
+anchor in its own numerator (``official``:
 the released code's loss, a_pos = 1/tau_pos, a_neg = 1/tau_neg). The anchor's own pair (d2 = 0) has no
 gradient; kind 2 gives it k' = 0 outright.
 """
