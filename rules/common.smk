@@ -401,8 +401,8 @@ def split_run(run):
 
 wildcard_constraints:
     preset="paper|official",
-    masks=r"merged(all|hier)?(-t[0-9]+(\.[0-9]+)?)?|patches",
-    mtag=r"(-all|-hier)?-t[0-9]+(\.[0-9]+)?",
+    masks=r"merged(all|hier|released)?(-t[0-9]+(\.[0-9]+)?)?|patches",
+    mtag=r"(-all|-hier|-released)?-t[0-9]+(\.[0-9]+)?",
     variant=f"({'|'.join(VARIANTS)})" r"(\.s[0-9]+)?",
 
 
@@ -444,6 +444,9 @@ def labels_dir(scene, v):
 MERGE_FLAVOURS = {
     "all": {"candidates": "all_pairs"},  # variant merge_candidates: all_pairs (the paper's main text)
     "hier": {"method": "hierarchical"},  # variant merge_method: hierarchical (beyond the paper)
+    # variant merge_method: released: the released code's merge (its vote rules and greedy grouping, the
+    # official preset's merge keys, on its conflict areas) on the variant's own trace
+    "released": {"preset": "official", "candidates": "conflict_area"},
 }
 
 
@@ -451,6 +454,8 @@ def merge_flavour(v):
     """The variant's merge flavour ('' for the preset's own merge)."""
     if v.get("merge_method") == "hierarchical":
         return "hier"
+    if v.get("merge_method") == "released":
+        return "released"
     return "all" if v.get("merge_candidates") == "all_pairs" else ""
 
 
@@ -466,7 +471,7 @@ def gaussians_dir(scene, v):
     """The Gaussians a variant's later stages use: refined, or the plain 2DGS fit."""
     if v["density_control"]:
         suffix = merge_suffix(v)
-        suffix = suffix[1:] if suffix.startswith(("-all", "-hier")) else suffix
+        suffix = suffix[1:] if suffix.startswith(("-all", "-hier", "-released")) else suffix
         masks = f"merged{suffix}" if v["consistent_masks"] else "patches"
         return f"{RESULTS}/{scene}/refine-{v['preset']}-{masks}"
     return f"{RESULTS}/{fit_scene(scene)}/gaussians"
@@ -491,7 +496,7 @@ def preset_params(step):
 def refine_labels(wildcards):
     if wildcards.masks.startswith("merged"):  # merged[all|hier][-t<threshold>] -> merge-<preset>[-all|-hier][-t<threshold>]
         suffix = wildcards.masks[len("merged"):]
-        dash = "-" if suffix.startswith(("all", "hier")) else ""
+        dash = "-" if suffix.startswith(("all", "hier", "released")) else ""
         return f"{RESULTS}/{wildcards.scene}/merge-{wildcards.preset}{dash}{suffix}"
     return f"{RESULTS}/{wildcards.scene}/patches"
 

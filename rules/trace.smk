@@ -77,6 +77,18 @@ use rule merge as merge_hier with:
         f"{RESULTS}/logs/{{scene}}/merge-{{preset}}-hier.log",
     benchmark:
         f"{RESULTS}/benchmarks/{{scene}}/merge-{{preset}}-hier.tsv"
+use rule merge as merge_released with:
+    output:
+        directory(f"{RESULTS}/{{scene}}/merge-{{preset}}-released"),
+    params:
+        p=merge_flavour_params("released"),
+        code=step_code("merge"),
+    log:
+        f"{RESULTS}/logs/{{scene}}/merge-{{preset}}-released.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/{{scene}}/merge-{{preset}}-released.tsv"
+
+
 # The same merge at a threshold other than the preset's (variant merge_threshold), e.g. merge-paper-t0.4.
 use rule merge as merge_threshold with:
     output:

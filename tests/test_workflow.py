@@ -383,13 +383,17 @@ def test_hierarchical_variant_has_its_own_merge_and_refine(tmp_path):
     """merge_method: hierarchical runs the merge with method hierarchical into merge-<preset>-hier and refines
     on those maps, beside the paper's merge."""
     config = {"scenes": {"a": {"kind": "synthetic"}},
-              "variants": {"full": {}, "full_hier": {"merge_method": "hierarchical"}}}
+              "variants": {"full": {}, "full_hier": {"merge_method": "hierarchical"},
+                           "full_released": {"merge_method": "released"}}}
     result = run_snakemake(tmp_path, "-n", "-p", "reproduce", config=config)
     assert result.returncode == 0, result.stderr[-3000:]
     shells = [line[line.index("trace3d "):] for line in result.stdout.splitlines() if "trace3d --threads" in line]
     merges = {line.split("--out ")[1].split()[0]: line for line in shells if " merge --scene" in line}
-    assert sorted(merges) == ["results/a/merge-paper", "results/a/merge-paper-hier"]
+    assert sorted(merges) == ["results/a/merge-paper", "results/a/merge-paper-hier", "results/a/merge-paper-released"]
     assert '"method": "hierarchical"' in merges["results/a/merge-paper-hier"]
+    released = merges["results/a/merge-paper-released"]
+    assert '"preset": "official"' in released and '"candidates": "conflict_area"' in released
+    assert "--git results/a/trace-paper " in released  # the released merge on this variant's own trace
     assert "hierarchical" not in merges["results/a/merge-paper"]
     refines = [line for line in shells if " refine --scene" in line]
     assert any("--labels results/a/merge-paper-hier/instances " in r and "--out results/a/refine-paper-mergedhier "

@@ -154,7 +154,7 @@ STEPS: tuple[Step, ...] = (
          (_SCENE, arg("--git", required=True, help="trace step folder (git.npz)"),
           arg("--patches", required=True, help="patches folder (maps and hierarchy JSON)"), _OUT, params_arg()),
          ("trace3d.tracing.merge:run_merge",), {"merge": ("trace3d.tracing.merge:MergeParams",)},
-         rules=("merge", "merge_all", "merge_hier", "merge_threshold")),
+         rules=("merge", "merge_all", "merge_hier", "merge_released", "merge_threshold")),
     Step("refine", "GIT-guided density control: split / prune ambiguous Gaussians while retraining",
          (_SCENE, _POSES, arg("--gaussians", required=True, help="fitted scene folder (point_cloud.ply, config.json)"),
           arg("--labels", required=True, help="instance maps <frame>.png: merge/instances (or raw patches)"),
@@ -271,8 +271,9 @@ class Variant:
         patches: the EgoLifter-style baseline; needs consistent_masks and density_control false.
     merge_candidates: which patch pairs of a view the merge compares: those inside a common coarser mask
         (the supplementary) or all pairs (the paper's main text).
-    merge_method: the paper's argmax-patch vote or the hierarchical merge (beyond the paper: the mask-level
-        vote over every pair, average linkage; trace3d/tracing/consistency.py).
+    merge_method: the paper's argmax-patch vote, the hierarchical merge (beyond the paper: the mask-level
+        vote over every pair, average linkage; trace3d/tracing/consistency.py) or the released code's merge
+        (the official preset's merge keys on conflict areas, greedy grouping) on the variant's own trace.
     merge_threshold: the merge's similarity threshold, when not the preset's (e.g. 0.4, the released
         merge_patches.py's, on the paper preset); its merge folder is merge-<preset>[-all|-hier]-t<threshold>.
     lift: lift step parameters of this variant, merged over the scene's `lift` (e.g. the self-prompting
@@ -285,7 +286,7 @@ class Variant:
     lifting: Literal["contrastive", "self_prompt", "labels"] = "contrastive"
     overlay: bool = False
     merge_candidates: Literal["coarser_mask", "all_pairs"] = "coarser_mask"
-    merge_method: Literal["vote", "hierarchical"] = "vote"
+    merge_method: Literal["vote", "hierarchical", "released"] = "vote"
     merge_threshold: float | None = None
     lift: dict = field(default_factory=dict)
 
