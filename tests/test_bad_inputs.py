@@ -26,6 +26,7 @@ import pytest
 import yaml
 
 from trace3d.cli import main
+from trace3d.io import MANIFEST
 
 REPO = Path(__file__).resolve().parent.parent
 TINY_SCENE = {"width": 32, "height": 24, "num_views": 4, "test_every": 2, "num_objects": 6, "supersample": 1}
@@ -53,10 +54,12 @@ class World:
     counter: list[int] = field(default_factory=lambda: [0])
 
     def copy(self, folder: Path) -> Path:
-        """A fresh copy of an input folder, to break one thing in."""
+        """A fresh copy of an input folder, to break one thing in: a user's own folder, without the step's
+        manifest (a step output whose file changed is refused for that alone: tests/test_outputs.py)."""
         self.counter[0] += 1
         target = self.root / "copies" / f"{folder.name}-{self.counter[0]}"
         shutil.copytree(folder, target)
+        (target / MANIFEST).unlink(missing_ok=True)
         return target
 
     def out(self, name: str = "out") -> Path:
