@@ -93,6 +93,9 @@ class TransformsParams:
     frame_stride: int = 1
     min_images: int = 2
 
+    # each field's range: refused on input and in the config schema (trace3d.params.check_ranges)
+    RANGES = {"max_side": ">= 0", "test_every": "0 | >= 2", "frame_stride": ">= 1", "min_images": ">= 1"}
+
     def __post_init__(self) -> None:
         if self.max_side < 0:
             raise ValueError(f"max_side must be >= 0, got {self.max_side}")
