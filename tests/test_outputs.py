@@ -253,3 +253,39 @@ def test_an_os_error_on_the_final_rename_puts_the_earlier_output_back(made, tmp_
     assert "ENOSPC" in sentence and str(out) in sentence
     assert snapshot(out) == before
     no_temporaries(out)
+
+
+@pytest.mark.parametrize("code", [errno.EROFS, errno.EACCES, errno.ENOSPC])
+def test_a_cache_folder_that_cannot_be_written_is_one_sentence(made, tmp_path, capsys, monkeypatch, code):
+    """A read-only (full, forbidden) NUMBA_CACHE_DIR is named before anything runs, instead of being announced
+    as the cache while numba writes elsewhere (simulated: the tests run as root, whom no mode stops)."""
+    import tempfile
+
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
+    monkeypatch.setenv("TRACE3D_NUMBA_CACHE_KEYED", str(cache))
+    real = tempfile.NamedTemporaryFile
+
+    def refused(*args, **kwargs):
+        if kwargs.get("dir") == str(cache):
+            raise OSError(code, os.strerror(code), str(cache))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(tempfile, "NamedTemporaryFile", refused)
+    out = tmp_path / "masks"
+    capsys.readouterr()
+    sentence = one_sentence(capsys, main(["masks", "--scene", str(made["scene"]), "--out", str(out)]))
+    assert "NUMBA_CACHE_DIR" in sentence and str(cache) in sentence and errno.errorcode[code] in sentence, sentence
+    assert not out.exists()
+
+
+def test_duplicate_params_keys_and_too_many_threads_are_one_sentence(made, tmp_path, capsys):
+    out = tmp_path / "masks"
+    capsys.readouterr()
+    sentence = one_sentence(capsys, main(["masks", "--scene", str(made["scene"]), "--out", str(out),
+                                          "--params", "{seed: 1, seed: 2}"]))
+    assert "'seed' appears twice" in sentence
+    sentence = one_sentence(capsys, main(["--threads", "100000", "masks", "--scene", str(made["scene"]),
+                                          "--out", str(out)]))
+    assert "--threads 100000" in sentence
+    assert not out.exists()

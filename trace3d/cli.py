@@ -346,8 +346,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with limit_threads(args.threads):
             if args.command not in NO_KERNEL_COMMANDS:
-                from .compiling import compile_seconds, install
+                from .compiling import check_cache_folder, compile_seconds, install
 
+                check_cache_folder()
                 install()
             args.func(args)
             if args.command not in NO_KERNEL_COMMANDS and compile_seconds() > 0:

@@ -103,6 +103,21 @@ def yaml_problem(exc: Exception) -> str:
     return " ".join(f"{problem}{where}".split())
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader refusing a key given twice in one mapping (it would keep the last silently),
+    as the workflow refuses one in a config file (rules/common.smk)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            if isinstance(key, (str, int, float, bool)) and key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"key {key!r} appears twice in one mapping; keep one", key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
 def load_params_arg(text: str | None) -> dict:
     """Parse a ``--params`` CLI value: inline JSON/YAML, or ``@path`` to a JSON/YAML file."""
     if not text:
@@ -115,8 +130,10 @@ def load_params_arg(text: str | None) -> dict:
         source = str(path)
         text = path.read_text()
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader
     except yaml.YAMLError as exc:
+        if "appears twice" in str(getattr(exc, "problem", "")):
+            raise ConfigError(f"{source}: {yaml_problem(exc)}.") from exc
         raise ConfigError(f"{source}: not valid JSON/YAML ({yaml_problem(exc)}); check the brackets and quotes.") from exc
     if data is None:
         return {}
