@@ -289,3 +289,31 @@ def test_duplicate_params_keys_and_too_many_threads_are_one_sentence(made, tmp_p
                                           "--out", str(out)]))
     assert "--threads 100000" in sentence
     assert not out.exists()
+
+
+def test_a_lift_on_one_label_maps_warns(made, tmp_path, caplog):
+    """Maps that hold one instance each give the contrastive loss nothing to separate: the lift says so in its
+    log and in lift.json instead of training quietly to a loss of 0."""
+    import cv2
+    import torch
+
+    from trace3d.gaussians import GaussianModel
+    from trace3d.scene import Scene
+
+    generator = torch.Generator().manual_seed(0)
+    n = 32
+    model = GaussianModel(means=torch.randn(n, 3, generator=generator),
+                          quats=torch.nn.functional.normalize(torch.randn(n, 4, generator=generator), dim=1),
+                          log_scales=torch.full((n, 2), -2.0), opacity_logits=torch.zeros(n),
+                          sh_dc=torch.rand(n, 1, 3, generator=generator), sh_rest=torch.zeros(n, 0, 3))
+    (tmp_path / "gaussians").mkdir()
+    model.write_ply(tmp_path / "gaussians" / "point_cloud.ply")
+    labels = tmp_path / "labels"
+    labels.mkdir()
+    for cam in Scene.read(made["scene"]).cameras:
+        cv2.imwrite(str(labels / f"{cam.name}.png"), np.full((cam.height, cam.width), 3, np.uint16))
+    out = tmp_path / "lift"
+    assert main(["lift", "--scene", str(made["scene"]), "--gaussians", str(tmp_path / "gaussians"), "--labels",
+                 str(labels), "--out", str(out), "--params", '{"iterations": 2, "pixels": 16, "pool_pixels": 64}']) == 0
+    assert "holds two instances" in caplog.text
+    assert "nothing to separate" in json.loads((out / "lift.json").read_text())["warning"]
