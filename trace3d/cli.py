@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 from .errors import Trace3DError
-from .steps import STEPS, handler
+from .steps import BY_COMMAND, STEPS, handler
 
 log = logging.getLogger("trace3d")
 
@@ -95,7 +95,7 @@ def _run_step(args: argparse.Namespace) -> None:
 
     inputs = step_inputs(args)
     verify_inputs(inputs)
-    with step_outputs(args.command, inputs):
+    with step_outputs(args.command, inputs, BY_COMMAND[args.command].rules):
         handler(args.command)(args)
 
 

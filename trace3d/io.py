@@ -111,7 +111,7 @@ def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
         tmp.mkdir()  # inside the try: an interruption right after it still removes the folder
         yield tmp
         if step is not None:
-            write_manifest(tmp, step[0])
+            write_manifest(tmp, step[0], step[2])
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -170,16 +170,17 @@ def write_json(path: str | os.PathLike, data: Any) -> None:
 # what a step may replace, and the manifests of its outputs
 # ----------------------------------------------------------------------------------------------
 
-# (step name, its input paths) while a step runs (step_outputs); None: library use, no guard
-_STEP: list[tuple[str, tuple[Path, ...]] | None] = [None]
+# (step name, its input paths, its Snakemake rules) while a step runs (step_outputs); None: library use
+_STEP: list[tuple[str, tuple[Path, ...], tuple[str, ...]] | None] = [None]
 
 
 @contextlib.contextmanager
-def step_outputs(step: str, inputs: Iterable[str | os.PathLike] = ()) -> Iterator[None]:
+def step_outputs(step: str, inputs: Iterable[str | os.PathLike] = (), rules: Iterable[str] = ()) -> Iterator[None]:
     """While the block runs, every :func:`atomic_dir` is an output of ``step``: it refuses a destination
-    that is not the step's own (:func:`check_destination`) and writes the folder's manifest last."""
+    that is not the step's own (:func:`check_destination`) and writes the folder's manifest last (naming
+    ``rules``, the Snakemake rules that run the step, for the message that asks for a rerun)."""
     previous = _STEP[0]
-    _STEP[0] = (step, tuple(Path(p) for p in inputs))
+    _STEP[0] = (step, tuple(Path(p) for p in inputs), tuple(rules))
     try:
         yield
     finally:
@@ -249,21 +250,20 @@ def _files(folder: Path) -> list[Path]:
     return sorted(out, key=lambda p: p.relative_to(folder).as_posix())
 
 
-def write_manifest(folder: str | os.PathLike, step: str) -> Path:
-    """Write ``folder``'s manifest: the step's name and every file's size and SHA-256 (call it last)."""
+def write_manifest(folder: str | os.PathLike, step: str, rules: Iterable[str] = ()) -> Path:
+    """Write ``folder``'s manifest: the step's name, its Snakemake rules and every file's size and SHA-256
+    (call it last)."""
     folder = Path(folder)
     files = {p.relative_to(folder).as_posix(): [p.stat().st_size, _digest(p)] for p in _files(folder)}
     path = folder / MANIFEST
-    path.write_text(json.dumps({"step": step, "files": files}, indent=0, sort_keys=True) + "\n")
+    path.write_text(json.dumps({"step": step, "rules": list(rules), "files": files}, indent=0, sort_keys=True) + "\n")
     return path
 
 
-def _rule_hint(step: str) -> str:
-    from .steps import BY_COMMAND
-
-    rules = BY_COMMAND[step].rules if step in BY_COMMAND else ()
+def _rule_hint(manifest: dict) -> str:
+    rules = [r for r in manifest.get("rules") or () if isinstance(r, str)]
     return (f"rerun it with snakemake --forcerun={rules[0]}" + (f" (or {', '.join(rules[1:])})" if rules[1:] else "")
-            if rules else f"rerun `trace3d {step}`")
+            if rules else f"rerun `trace3d {manifest['step']}`")
 
 
 def manifest_problems(folder: str | os.PathLike) -> list[str]:
@@ -273,7 +273,7 @@ def manifest_problems(folder: str | os.PathLike) -> list[str]:
     manifest = read_manifest(folder)
     if manifest is None:
         return []
-    hint = _rule_hint(manifest["step"])
+    hint = _rule_hint(manifest)
     problems = []
     for name, entry in sorted(manifest["files"].items()):
         path = folder / name
