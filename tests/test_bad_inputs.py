@@ -509,7 +509,8 @@ CONFIG_CASES = {
     "masks seed negative": ({"defaults": {"masks": {"simulated": {"seed": -3}}}}, ["-3", "minimum"]),
     "gaussians seed negative": ({"defaults": {"gaussians": {"seed": -3}}}, ["-3", "minimum"]),
     "a mask model's inconsistency above 1": (
-        {"variants": {"full": {}}, "mask_models": {"m": {"masks": {"simulated": {"inconsistency": 1.7}}, "variants": ["full"]}}},
+        {"variants": {"full": {}},
+         "mask_models": {"m": {"masks": {"simulated": {"inconsistency": 1.7}}, "variants": ["full"]}}},
         ["1.7", "maximum"]),
     "refine gamma 0": ({"defaults": {"refine": {"gamma": 0}}}, ["0", "exclusiveMinimum"]),
 }

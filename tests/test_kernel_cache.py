@@ -45,9 +45,10 @@ def test_a_lift_gives_the_same_bits_from_compiled_and_cached_kernels(tmp_path):
     for run in ("compiled", "cached"):
         out = tmp_path / f"lift-{run}"
         # no time limit: a cold compile on a busy machine (tests/conftest.py)
-        result = subprocess.run([sys.executable, "-m", "trace3d.cli", "--threads", "2", "lift", "--scene", str(scene),
-                                 "--gaussians", str(tmp_path / "gaussians"), "--labels", str(patches), "--out", str(out),
-                                 "--params", json.dumps(LIFT)], capture_output=True, text=True, env=env, cwd=tmp_path)
+        argv = ["--threads", "2", "lift", "--scene", str(scene), "--gaussians", str(tmp_path / "gaussians"),
+                "--labels", str(patches), "--out", str(out), "--params", json.dumps(LIFT)]
+        result = subprocess.run([sys.executable, "-m", "trace3d.cli", *argv], capture_output=True, text=True, env=env,
+                                cwd=tmp_path)
         assert result.returncode == 0, result.stderr[-3000:]
         compiled = "compiling kernels" in result.stderr
         assert compiled == (run == "compiled"), (run, result.stderr[-2000:])

@@ -215,8 +215,8 @@ def check_destination(final: Path, step: str, inputs: Iterable[Path] = ()) -> No
     if not (final.exists() or final.is_symlink()):
         return
     if not final.is_dir() or final.is_symlink():
-        raise Trace3DError(f"--out {final} exists and is not a folder (a file or a link); give a path that does not exist yet "
-                           f"(it is left as it is).")
+        raise Trace3DError(f"--out {final} exists and is not a folder (a file or a link); give a path that does not "
+                           f"exist yet (it is left as it is).")
     if not any(final.iterdir()):
         return
     manifest = read_manifest(final)

@@ -134,7 +134,8 @@ def load_params_arg(text: str | None) -> dict:
     except yaml.YAMLError as exc:
         if "appears twice" in str(getattr(exc, "problem", "")):
             raise ConfigError(f"{source}: {yaml_problem(exc)}.") from exc
-        raise ConfigError(f"{source}: not valid JSON/YAML ({yaml_problem(exc)}); check the brackets and quotes.") from exc
+        raise ConfigError(f"{source}: not valid JSON/YAML ({yaml_problem(exc)}); check the brackets and "
+                          f"quotes.") from exc
     if data is None:
         return {}
     if not isinstance(data, dict):

@@ -131,7 +131,7 @@ class RawFrame:
 
 def _load_json(path: Path) -> dict:
     try:
-        data = json.loads(path.read_text(encoding="utf-8-sig"))  # a UTF-8 byte-order mark (Windows editors) is read past
+        data = json.loads(path.read_text(encoding="utf-8-sig"))  # a byte-order mark (Windows editors) is skipped
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise Trace3DError(f"{path}: not valid JSON ({exc}).") from exc
     if not isinstance(data, dict) or not isinstance(data.get("frames"), list):

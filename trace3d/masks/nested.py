@@ -48,7 +48,6 @@ from ..params import check_ranges
 from ..scene import ObjectTable, Scene
 from .sam import nest_covered_masks
 from .simulate import (
-    BORDER_AND_SIZE_FIELDS,
     DEFAULT_FLAT_CATEGORIES,
     _analyse_view,
     _LevelTables,

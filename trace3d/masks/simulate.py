@@ -43,8 +43,6 @@ from ..scene import ObjectTable, Scene
 log = logging.getLogger(__name__)
 
 DEFAULT_FLAT_CATEGORIES = ("wall", "floor", "ceiling", "rug", "carpet")
-# pixel sizes both simulated mask models share (never negative)
-BORDER_AND_SIZE_FIELDS = ("jitter_pixels", "warp_pixels", "thin_pixels", "touch_pixels", "min_mask_pixels")
 
 
 @dataclasses.dataclass

@@ -21,8 +21,8 @@ def run(args: argparse.Namespace) -> None:
             import logging
             import math
 
-            logging.getLogger("trace3d").warning("extract: --point %s is read as the pixel %d,%d (fractions are floored)",
-                                                 args.point, *(math.floor(v) for v in params["point"]))
+            logging.getLogger("trace3d").warning("extract: --point %s is read as the pixel %d,%d (fractions are "
+                                                 "floored)", args.point, *(math.floor(v) for v in params["point"]))
     scene = Scene.read(args.scene)
     with atomic_dir(args.out) as tmp:
         run_extract(scene, Path(args.poses) if args.poses else None, Path(args.gaussians), Path(args.lift), tmp,
