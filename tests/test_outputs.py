@@ -102,12 +102,18 @@ def _a_link_to_a_users_folder(made, tmp_path):
     return ["masks", "--scene", made["scene"], "--out", link], folder, [str(link)]
 
 
+def _a_file_step_onto_its_input(made, tmp_path):
+    scene = copy(made, "scene", tmp_path)
+    return ["summary", scene, "--out", scene / "cameras.json"], scene, [str(scene / "cameras.json"), "input"]
+
+
 DESTINATIONS = {"the scene itself (--out = --scene)": _the_scene_itself,
                 "a folder holding the input": _a_folder_holding_the_input,
                 "a user's folder with a file in it": _a_users_folder,
                 "a user's file": _a_users_file,
                 "another step's output": _another_steps_output,
-                "a link to a user's folder": _a_link_to_a_users_folder}
+                "a link to a user's folder": _a_link_to_a_users_folder,
+                "a table written onto the file it reads": _a_file_step_onto_its_input}
 
 
 @pytest.mark.parametrize("name", sorted(DESTINATIONS))

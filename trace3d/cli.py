@@ -91,9 +91,10 @@ def step_inputs(args: argparse.Namespace) -> list[Path]:
 def _run_step(args: argparse.Namespace) -> None:
     """Run the step ``args.command`` (its handler module's ``run``): its inputs are checked against their
     manifests first, and every folder it writes must be its own (:mod:`trace3d.io`)."""
-    from .io import step_outputs, verify_inputs
+    from .io import check_file_outputs, step_outputs, verify_inputs
 
     inputs = step_inputs(args)
+    check_file_outputs([v for k in OUTPUT_FLAGS if isinstance(v := getattr(args, k, None), str) and v], inputs)
     verify_inputs(inputs)
     with step_outputs(args.command, inputs, BY_COMMAND[args.command].rules):
         handler(args.command)(args)

@@ -304,6 +304,23 @@ def _marked_folder(path: Path) -> Path | None:
     return None
 
 
+def check_file_outputs(outputs: Iterable[str | os.PathLike], inputs: Iterable[str | os.PathLike]) -> None:
+    """Refuse (one sentence) an output file that is one of the step's inputs, or an existing file inside a
+    step output that the step reads (a table written over a scene's cameras.json); folders are
+    :func:`check_destination`'s."""
+    inputs = [Path(p) for p in inputs]
+    for out in map(Path, outputs):
+        if out.is_dir():
+            continue
+        resolved = out.resolve()
+        marked = _marked_folder(out) if out.exists() else None
+        for source in inputs:
+            if resolved == source.resolve() or (marked is not None and _same_or_inside(marked.resolve(),
+                                                                                      source.resolve())):
+                raise Trace3DError(f"{out} is {'' if resolved == source.resolve() else 'a file of '}this step's "
+                                   f"input {source}, which writing it would destroy; give another output path.")
+
+
 def verify_inputs(paths: Iterable[str | os.PathLike]) -> None:
     """Check every step output that ``paths`` are (or lie inside) against its manifest; the first file
     that differs is raised as one sentence (:class:`Trace3DError`). Folders without a manifest (a
