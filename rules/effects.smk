@@ -32,5 +32,5 @@ rule effects:
     conda:
         ENV
     shell:
-        "trace3d --threads {threads} effects --spec {params.spec} --out {output.table} --plot {output.plot}"
-        " > {log} 2>&1"
+        "trace3d --threads {threads} effects --spec {params.spec} --out {output.table:q} --plot {output.plot:q}"
+        " > {log:q} 2>&1"

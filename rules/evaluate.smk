@@ -19,7 +19,7 @@ rule evaluate:
         objects=directory(f"{RESULTS}/{{scene}}/{{variant}}/objects"),
     params:
         p=evaluate_params("standard"),
-        objects=lambda w, output: f"--objects {output.objects}",
+        objects=lambda w, output: f"--objects {shlex.quote(output.objects)}",
         label=lambda w: shlex.quote(json.dumps(run_label(w.variant), sort_keys=True)),
         code=step_code("evaluate"),
     threads: 1  # same bits at any thread count; two 1-thread jobs use 2 cores better (docs/performance.md, 'Rule threads')
@@ -33,9 +33,9 @@ rule evaluate:
     conda:
         ENV
     shell:
-        "trace3d --threads {threads} evaluate --scene {input.scene} --poses {input.poses} --gaussians {input.gaussians}"
-        " --lift {input.lift} --out {output.eval} {params.objects} --params {params.p} --label {params.label}"
-        " > {log} 2>&1"
+        "trace3d --threads {threads} evaluate --scene {input.scene:q} --poses {input.poses:q} --gaussians {input.gaussians:q}"
+        " --lift {input.lift:q} --out {output.eval:q} {params.objects} --params {params.p} --label {params.label}"
+        " > {log:q} 2>&1"
 
 
 use rule evaluate as evaluate_official with:
@@ -78,9 +78,9 @@ rule evaluate_nvos:
     conda:
         ENV
     shell:
-        "trace3d --threads {threads} evaluate-nvos --scene {input.scene} --poses {input.poses}"
-        " --gaussians {input.gaussians} --lift {input.lift} --labels {params.labels} --out {output}"
-        " --label {params.label} > {log} 2>&1"
+        "trace3d --threads {threads} evaluate-nvos --scene {input.scene:q} --poses {input.poses:q}"
+        " --gaussians {input.gaussians:q} --lift {input.lift:q} --labels {params.labels:q} --out {output:q}"
+        " --label {params.label} > {log:q} 2>&1"
 
 
 TABLES = ("table2", "table2_psnr", "table3", "table5")
@@ -112,7 +112,7 @@ rule tables:
     conda:
         ENV
     shell:
-        "trace3d --threads {threads} tables --results {params.results} --out {params.out} --evals {input} > {log} 2>&1"
+        "trace3d --threads {threads} tables --results {params.results:q} --out {params.out:q} --evals {input:q} > {log:q} 2>&1"
 
 
 # Table 4 from the NVOS scenes (results/tables/table4.*).
@@ -175,7 +175,7 @@ rule evaluation_pictures:
     conda:
         ENV
     shell:
-        "cp {input}/pictures.png {output} > {log} 2>&1"
+        "cp {input:q}/pictures.png {output:q} > {log:q} 2>&1"
 
 
 # The feature PCA of every contrastive lift (rendered test views), beside the evaluation figures.
@@ -196,4 +196,4 @@ rule lift_pictures:
     conda:
         ENV
     shell:
-        "cp {input}/pca.png {output} > {log} 2>&1"
+        "cp {input:q}/pca.png {output:q} > {log:q} 2>&1"

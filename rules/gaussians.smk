@@ -23,5 +23,5 @@ rule gaussians:
     conda:
         ENV
     shell:
-        "trace3d --threads {threads} gaussians --scene {input.scene} --poses {input.poses} --out {output}"
-        " --params {params.p} > {log} 2>&1"
+        "trace3d --threads {threads} gaussians --scene {input.scene:q} --poses {input.poses:q} --out {output:q}"
+        " --params {params.p} > {log:q} 2>&1"

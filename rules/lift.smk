@@ -25,5 +25,5 @@ rule lift:
     conda:
         ENV
     shell:
-        "trace3d --threads {threads} lift --scene {input.scene} --poses {input.poses} --gaussians {input.gaussians}"
-        " --labels {params.labels} --out {output} --params {params.p} > {log} 2>&1"
+        "trace3d --threads {threads} lift --scene {input.scene:q} --poses {input.poses:q} --gaussians {input.gaussians:q}"
+        " --labels {params.labels:q} --out {output:q} --params {params.p} > {log:q} 2>&1"

@@ -20,7 +20,7 @@ rule masks:
     conda:
         ENV
     shell:
-        "trace3d --threads {threads} masks --scene {input} --out {output} {params.args} > {log} 2>&1"
+        "trace3d --threads {threads} masks --scene {input:q} --out {output:q} {params.args} > {log:q} 2>&1"
 
 
 rule patches:
@@ -43,8 +43,8 @@ rule patches:
     conda:
         ENV
     shell:
-        "trace3d --threads {threads} patches --scene {input.scene} --masks {input.masks} --out {output}"
-        " --params {params.p} > {log} 2>&1"
+        "trace3d --threads {threads} patches --scene {input.scene:q} --masks {input.masks:q} --out {output:q}"
+        " --params {params.p} > {log:q} 2>&1"
 
 
 # Every view's masks painted into one label per pixel (smallest on top): the input of the
@@ -68,4 +68,4 @@ rule overlay:
     conda:
         ENV
     shell:
-        "trace3d --threads {threads} overlay --scene {input.scene} --masks {input.masks} --out {output} > {log} 2>&1"
+        "trace3d --threads {threads} overlay --scene {input.scene:q} --masks {input.masks:q} --out {output:q} > {log:q} 2>&1"

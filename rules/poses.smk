@@ -22,4 +22,4 @@ rule poses:
     conda:
         ENV
     shell:
-        "trace3d --threads {threads} poses --scene {input} --out {output} --params {params.p} > {log} 2>&1"
+        "trace3d --threads {threads} poses --scene {input:q} --out {output:q} --params {params.p} > {log:q} 2>&1"

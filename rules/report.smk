@@ -21,7 +21,7 @@ rule scenes_table:
     conda:
         ENV
     shell:
-        "trace3d --threads {threads} summary {input} --out {output} > {log} 2>&1"
+        "trace3d --threads {threads} summary {input:q} --out {output:q} > {log:q} 2>&1"
 
 
 rule reconstruction_table:
@@ -50,8 +50,8 @@ rule reconstruction_table:
     conda:
         ENV
     shell:
-        "trace3d --threads {threads} reconstruction-table --poses {input.poses} --gaussians {input.gaussians}"
-        " --out {output.table} --plot {output.plot} > {log} 2>&1"
+        "trace3d --threads {threads} reconstruction-table --poses {input.poses:q} --gaussians {input.gaussians:q}"
+        " --out {output.table:q} --plot {output.plot:q} > {log:q} 2>&1"
 
 
 rule tracing_table:
@@ -80,5 +80,5 @@ rule tracing_table:
     conda:
         ENV
     shell:
-        "trace3d --threads {threads} tracing-table --merge {input.merge} --refine {input.refine}"
-        " --out {output.table} --plot {output.plot} > {log} 2>&1"
+        "trace3d --threads {threads} tracing-table --merge {input.merge:q} --refine {input.refine:q}"
+        " --out {output.table:q} --plot {output.plot:q} > {log:q} 2>&1"

@@ -31,5 +31,5 @@ rule robustness:
     conda:
         ENV
     shell:
-        "trace3d --threads {threads} robustness --spec {params.spec} --out {output.table} --plot {output.plot}"
-        " > {log} 2>&1"
+        "trace3d --threads {threads} robustness --spec {params.spec} --out {output.table:q} --plot {output.plot:q}"
+        " > {log:q} 2>&1"

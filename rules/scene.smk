@@ -20,4 +20,4 @@ rule scene:
     conda:
         ENV
     shell:
-        "trace3d --threads {threads} scene {params.args} --out {output} > {log} 2>&1"
+        "trace3d --threads {threads} scene {params.args} --out {output:q} > {log:q} 2>&1"

@@ -26,8 +26,8 @@ rule segment:
     conda:
         ENV
     shell:
-        "trace3d --threads {threads} segment --scene {input.scene} --poses {input.poses} --gaussians {input.gaussians}"
-        " --lift {input.lift} --out {output} --params {params.p} > {log} 2>&1"
+        "trace3d --threads {threads} segment --scene {input.scene:q} --poses {input.poses:q} --gaussians {input.gaussians:q}"
+        " --lift {input.lift:q} --out {output:q} --params {params.p} > {log:q} 2>&1"
 
 
 # Every segmented scene's contact sheet (the objects' turntable strips) in the report.
@@ -48,4 +48,4 @@ rule segment_pictures:
     conda:
         ENV
     shell:
-        "cp {input}/contact_sheet.png {output} > {log} 2>&1"
+        "cp {input:q}/contact_sheet.png {output:q} > {log:q} 2>&1"

@@ -24,8 +24,8 @@ rule trace:
     conda:
         ENV
     shell:
-        "trace3d --threads {threads} trace --scene {input.scene} --poses {input.poses} --gaussians {input.gaussians}"
-        " --labels {input.patches} --out {output} --params {params.p} > {log} 2>&1"
+        "trace3d --threads {threads} trace --scene {input.scene:q} --poses {input.poses:q} --gaussians {input.gaussians:q}"
+        " --labels {input.patches:q} --out {output:q} --params {params.p} > {log:q} 2>&1"
 
 
 rule merge:
@@ -49,8 +49,8 @@ rule merge:
     conda:
         ENV
     shell:
-        "trace3d --threads {threads} merge --scene {input.scene} --git {input.git} --patches {input.patches}"
-        " --out {output} --params {params.p} > {log} 2>&1"
+        "trace3d --threads {threads} merge --scene {input.scene:q} --git {input.git:q} --patches {input.patches:q}"
+        " --out {output:q} --params {params.p} > {log:q} 2>&1"
 
 
 # The same merge comparing every pair of patches of a view (variant merge_candidates: all_pairs), and the
@@ -125,5 +125,5 @@ rule refine:
     conda:
         ENV
     shell:
-        "trace3d --threads {threads} refine --scene {input.scene} --poses {input.poses} --gaussians {input.gaussians}"
-        " --labels {params.labels} --out {output} --params {params.p} > {log} 2>&1"
+        "trace3d --threads {threads} refine --scene {input.scene:q} --poses {input.poses:q} --gaussians {input.gaussians:q}"
+        " --labels {params.labels:q} --out {output:q} --params {params.p} > {log:q} 2>&1"

@@ -346,7 +346,10 @@ def test_fused_loss_pads_odd_sizes(dim):
         fused = fused_contrastive_loss(f32, labels, **kw)
         (g_fused,) = torch.autograd.grad(fused, f32)
         assert float(fused.detach()) == pytest.approx(float(ref.detach()), rel=1e-5, abs=1e-7)  # float32 sums: ~1e-7 absolute
-        torch.testing.assert_close(g_fused.double(), g_ref, rtol=1e-3, atol=1e-5 * float(g_ref.abs().max()))
+        # the gradient 2/P (total_u f_u - sum_v c_uv f_v) cancels in float32: over 6 seeds x these sizes the
+        # largest error was 3.0e-5 of max |g| with the sums in LLVM's reassociated order, 5.5e-5 in the
+        # written-out order that keeps compiled and cached kernels equal (issue 49)
+        torch.testing.assert_close(g_fused.double(), g_ref, rtol=1e-3, atol=1e-4 * float(g_ref.abs().max()))
 
 
 def test_instance_order_is_a_stable_argsort():

@@ -64,7 +64,7 @@ def test_transforms_captures_run_the_whole_dag_to_object_plys(room, tmp_path):
               "scenes": {"instant-ngp": {"kind": "transforms", "source": "instant-ngp"}}}
     # a minute or two on an idle machine with numba's cache warm; the cold compile of the fit's, trace's and
     # lift's kernels on a loaded machine takes longer
-    result = run_snakemake(tmp_path, "--cores", "2", "reproduce", config=config, timeout=2400)
+    result = run_snakemake(tmp_path, "--cores", "2", "reproduce", config=config)
     assert result.returncode == 0, result.stderr[-4000:]
     for name in config["scenes"]:
         seg = tmp_path / "results" / name / "full" / "segment"

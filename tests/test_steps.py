@@ -224,7 +224,7 @@ def test_dry_run_reruns_the_lift_after_a_change_to_the_adam_kernel(tmp_path):
 
     def snakemake(*args):
         result = subprocess.run([SNAKEMAKE, "--configfile=config.yaml", *args, *targets], cwd=root, env=env,
-                                capture_output=True, text=True, timeout=600)
+                                capture_output=True, text=True)
         assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-2000:]
         return result.stdout + result.stderr
 

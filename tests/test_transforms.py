@@ -303,7 +303,7 @@ def test_mixed_sizes_need_per_frame_intrinsics(room, tmp_path):
     small = tmp_path / "ns" / "images" / "frame_00002.png"
     cv2.imwrite(str(small), cv2.resize(cv2.imread(str(small)), (W // 2, H // 2), interpolation=cv2.INTER_AREA))
     _edit(tmp_path / "ns", lambda d: [d.pop(k) for k in ("w", "h")])
-    with pytest.raises(Trace3DError, match="different sizes"):
+    with pytest.raises(Trace3DError, match=r"different sizes .* frame 1 \(images/frame_00002.png\)"):  # the odd one
         import_transforms(tmp_path / "ns", tmp_path / "s", TransformsParams())
     # with its own (halved) intrinsics, the frame imports at its size and reprojects
     cam = scene.camera(names["frame_00002"])
@@ -314,6 +314,22 @@ def test_mixed_sizes_need_per_frame_intrinsics(room, tmp_path):
     imported = Scene.read(tmp_path / "s").camera("frame_00002")
     assert (imported.width, imported.height) == (W // 2, H // 2)
     assert _reprojection_error(imported, cam, points, lambda x: x, (0.5, 0.5)) < 0.5
+
+
+def test_a_byte_order_mark_and_windows_paths_are_read(room, tmp_path):
+    """A transforms.json saved by a Windows editor (UTF-8 BOM) with backslashes in file_path imports as the
+    same scene as the plain file (issue 49)."""
+    scene, _ = room
+    write_nerfstudio(scene, tmp_path / "plain")
+    import_transforms(tmp_path / "plain", tmp_path / "a", TransformsParams())
+    shutil.copytree(tmp_path / "plain", tmp_path / "win")
+    _edit(tmp_path / "win", lambda d: [f.update(file_path=f["file_path"].replace("/", "\\")) for f in d["frames"]])
+    path = tmp_path / "win" / "transforms.json"
+    path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes())
+    import_transforms(tmp_path / "win", tmp_path / "b", TransformsParams())
+    assert (tmp_path / "a" / "cameras.json").read_bytes() == (tmp_path / "b" / "cameras.json").read_bytes()
+    assert sorted(p.name for p in (tmp_path / "b" / "images").iterdir()) == \
+        sorted(p.name for p in (tmp_path / "a" / "images").iterdir())
 
 
 def test_source_errors_and_params(tmp_path):

@@ -14,13 +14,15 @@ import pandas as pd
 import pytest
 import yaml
 
+from trace3d.cli import main
+
 REPO = Path(__file__).resolve().parent.parent
 SNAKEMAKE = shutil.which("snakemake", path=str(Path(sys.executable).parent)) or shutil.which("snakemake")
 
 pytestmark = pytest.mark.skipif(SNAKEMAKE is None, reason="snakemake is not installed")
 
 
-def run_snakemake(workdir: Path, *args: str, config: dict | None = None, timeout: int = 600):
+def run_snakemake(workdir: Path, *args: str, config: dict | None = None, timeout: float | None = None):
     cmd = [SNAKEMAKE, "-s", str(REPO / "Snakefile"), "--directory", str(workdir)]
     if config is not None:
         path = workdir / "config.yaml"
@@ -68,6 +70,7 @@ def test_dry_run_default_config():
 TINY_TRAINING = {"schedule_scale": 1.0, "iterations": 40, "densify_from": 10, "densify_until": 30,
                  "densify_interval": 10, "normal_from": 20, "sh_degree": 1, "sh_degree_interval": 20,
                  "device": "cpu"}
+RESULTS_NAME = "my rés ults"  # the whole-DAG test's results folder
 TINY_SYNTHETIC = {"width": 48, "height": 36, "num_views": 6, "test_every": 3, "num_objects": 10, "supersample": 1}
 
 
@@ -95,79 +98,85 @@ def test_end_to_end_tiny(tmp_path):
         "scenes": {"a": {"kind": "synthetic", "synthetic": {"seed": 1}}},
         # one more mask level of scene a, on a's fit (0.5 is a itself)
         "robustness": {"scenes": ["a"], "levels": [0.0, 0.5], "variants": ["no_refine"]},
+        # a space and a non-ASCII letter in every path the rules pass to a shell (issue 49)
+        "results": RESULTS_NAME,
     }
+    results = tmp_path / RESULTS_NAME
     # the whole DAG with both evaluation protocols: a few minutes on an idle 2-core machine, far more beside
     # other jobs (600 s ran out on 2026-11-27 under a load average of 10)
-    result = run_snakemake(tmp_path, "--cores", "2", "reproduce", config=config, timeout=1800)
+    result = run_snakemake(tmp_path, "--cores", "2", "reproduce", config=config)
     assert result.returncode == 0, result.stderr[-4000:]
     for scene in ("a",):
-        root = tmp_path / "results" / scene / "scene"
+        root = results / scene / "scene"
         assert len(list((root / "images").glob("*.png"))) == 6
         assert (root / "preview.png").stat().st_size > 1000
-        assert (tmp_path / "results" / "logs" / scene / "scene.log").is_file()
-        assert (tmp_path / "results" / "benchmarks" / scene / "scene.tsv").is_file()
+        assert (results / "logs" / scene / "scene.log").is_file()
+        assert (results / "benchmarks" / scene / "scene.tsv").is_file()
         for step in ("poses", "masks", "patches", "gaussians"):
-            assert (tmp_path / "results" / scene / step).is_dir(), step
-        assert len(list((tmp_path / "results" / scene / "patches").glob("*.png"))) >= 6
-        assert (tmp_path / "results" / scene / "gaussians" / "point_cloud.ply").is_file()
+            assert (results / scene / step).is_dir(), step
+        assert len(list((results / scene / "patches").glob("*.png"))) >= 6
+        assert (results / scene / "gaussians" / "point_cloud.ply").is_file()
         for step in ("trace-paper", "merge-paper", "refine-paper-merged", "refine-paper-patches"):
-            assert (tmp_path / "results" / scene / step).is_dir(), step
-        assert not (tmp_path / "results" / scene / "refine-official-patches").exists()  # no such variant
-        assert (tmp_path / "results" / scene / "refine-official-merged").is_dir()  # the official preset's own
-        assert len(list((tmp_path / "results" / scene / "merge-paper" / "instances").glob("*.png"))) >= 4
+            assert (results / scene / step).is_dir(), step
+        assert not (results / scene / "refine-official-patches").exists()  # no such variant
+        assert (results / scene / "refine-official-merged").is_dir()  # the official preset's own
+        assert len(list((results / scene / "merge-paper" / "instances").glob("*.png"))) >= 4
         for name in ("full", "no_refine", "raw"):
-            assert (tmp_path / "results" / scene / name / "lift" / "features.npy").is_file(), name
-            assert (tmp_path / "results" / scene / name / "eval" / "metrics.json").is_file(), name
-            official = json.loads((tmp_path / "results" / scene / name / "eval-official" / "metrics.json").read_text())
+            assert (results / scene / name / "lift" / "features.npy").is_file(), name
+            assert (results / scene / name / "eval" / "metrics.json").is_file(), name
+            official = json.loads((results / scene / name / "eval-official" / "metrics.json").read_text())
             assert official["protocol"] == "official" and official["params"]["views"] == "all", name
-            assert list((tmp_path / "results" / scene / name / "objects").glob("*.ply")), name
-            assert not (tmp_path / "results" / scene / name / "eval" / "objects").exists()
-    tables = tmp_path / "results" / "tables"
+            assert list((results / scene / name / "objects").glob("*.ply")), name
+            assert not (results / scene / name / "eval" / "objects").exists()
+    tables = results / "tables"
     for name in ("table2", "table3", "table5"):
         text = (tables / f"{name}.md").read_text()
         assert "full" in text, (name, text)
         assert (tables / f"{name}.csv").is_file() and (tables / f"{name}.tex").is_file()
     assert "no_refine" in (tables / "table2.md").read_text() and "raw" in (tables / "table3.md").read_text()
     for scene in ("a",):  # self-prompting: no features, its own evaluation; the official preset: its own lift
-        assert json.loads((tmp_path / "results" / scene / "sp" / "lift" / "lift.json").read_text())["method"] == \
+        assert json.loads((results / scene / "sp" / "lift" / "lift.json").read_text())["method"] == \
             "self_prompt"
-        assert (tmp_path / "results" / scene / "sp" / "eval" / "metrics.json").is_file()
-        assert json.loads((tmp_path / "results" / scene / "off" / "lift" / "lift.json").read_text())["params"][
+        assert (results / scene / "sp" / "eval" / "metrics.json").is_file()
+        assert json.loads((results / scene / "off" / "lift" / "lift.json").read_text())["params"][
             "preset"] == "official"
     assert "| sp |" in (tables / "table5.md").read_text() and "| off |" in (tables / "table2.md").read_text()
     assert "official" in (tables / "official" / "table2.md").read_text()  # its protocol note
     assert "standard" in (tables / "table2.md").read_text() and "official" not in (tables / "table2.md").read_text()
-    assert (tmp_path / "results" / "plots" / "lift" / "a-full.png").stat().st_size > 1000
+    assert (results / "plots" / "lift" / "a-full.png").stat().st_size > 1000
     # the robustness level: its own masks and evaluation, the base scene's fit (no scene/poses/gaussians)
-    derived = tmp_path / "results" / "a@inc0"
+    derived = results / "a@inc0"
     assert (derived / "no_refine" / "eval" / "metrics.json").is_file()
     assert not any((derived / step).exists() for step in ("scene", "poses", "gaussians"))
     robust = pd.read_csv(tables / "robustness.csv")
     assert sorted(robust["level"]) == [0.0, 0.5] and set(robust["variant"]) == {"no_refine"}
     assert (robust["scene"] == "a").all() and robust["object mIoU"].notna().all()
-    assert (tmp_path / "results" / "plots" / "robustness.png").stat().st_size > 1000
+    assert (results / "plots" / "robustness.png").stat().st_size > 1000
     report = run_snakemake(tmp_path, "--cores", "1", "reproduce", "--report", str(tmp_path / "report.html"),
                            config=config)
     assert report.returncode == 0, report.stderr[-4000:]
     html = (tmp_path / "report.html").read_text(errors="replace")
     assert "table2" in html and "Tables" in html and "Robustness" in html
-    tracing = (tmp_path / "results" / "tracing.md").read_text()
+    tracing = (results / "tracing.md").read_text()
     assert "| a " in tracing and "ARI before" in tracing
-    reconstruction = (tmp_path / "results" / "reconstruction.md").read_text()
+    reconstruction = (results / "reconstruction.md").read_text()
     assert "| a " in reconstruction and "| mean " in reconstruction
-    assert (tmp_path / "results" / "plots" / "reconstruction.png").stat().st_size > 1000
-    table = (tmp_path / "results" / "scenes.md").read_text()
+    assert (results / "plots" / "reconstruction.png").stat().st_size > 1000
+    table = (results / "scenes.md").read_text()
     assert "| a " in table and "| b " not in table and "48x36" in table
+    # every step output is whole: its files match the manifest it wrote last
+    assert main(["verify", str(results)]) == 0
+    assert not list(tmp_path.glob("my")) and not list(tmp_path.glob("ults*")), "a path was split at its space"
     # nothing left to do: a second run is a no-op
     again = run_snakemake(tmp_path, "--cores", "2", "reproduce", "-n", config=config)
     assert again.returncode == 0
     assert "Nothing to be done" in again.stdout + again.stderr
     # a second room: the scenes table lists both, after only that room's scene step (a's outputs stay)
     two = {**config, "scenes": {**config["scenes"], "b": {"kind": "synthetic", "synthetic": {"seed": 2}}}}
-    more = run_snakemake(tmp_path, "--cores", "2", "results/scenes.md", config=two)
+    more = run_snakemake(tmp_path, "--cores", "2", f"{RESULTS_NAME}/scenes.md", config=two)
     assert more.returncode == 0, more.stderr[-4000:]
     assert re.search(r"^scene +1$", more.stdout + more.stderr, re.M), (more.stdout + more.stderr)[-3000:]
-    table = (tmp_path / "results" / "scenes.md").read_text()
+    table = (results / "scenes.md").read_text()
     assert "| a " in table and "| b " in table and "48x36" in table
 
 

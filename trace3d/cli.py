@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 from .errors import Trace3DError
-from .steps import STEPS, handler
+from .steps import BY_COMMAND, STEPS, handler
 
 log = logging.getLogger("trace3d")
 
@@ -27,7 +27,7 @@ log = logging.getLogger("trace3d")
 # (The steps' own flag: Step.spin in trace3d.steps.)
 SPIN_COMMANDS = {(s.command, None) for s in STEPS if s.spin} | {("bench", "lift"), ("bench", "lift-forms")}
 # Commands that run no numba kernel: no compile listener (trace3d.compiling), so no numba import.
-NO_KERNEL_COMMANDS = {s.command for s in STEPS if not s.kernels} | {"describe", "progress"}
+NO_KERNEL_COMMANDS = {s.command for s in STEPS if not s.kernels} | {"describe", "progress", "verify"}
 
 
 def _entry_point_environment() -> None:
@@ -71,9 +71,53 @@ def _command_environment(args: argparse.Namespace) -> None:
 # ----------------------------------------------------------------------------------------------
 
 
+OUTPUT_FLAGS = ("out", "objects", "plot")  # a step's arguments that name what it writes
+TEXT_FLAGS = ("params", "spec", "label", "view", "point", "patch_params", "kind", "small", "large")
+
+
+def step_inputs(args: argparse.Namespace) -> list[Path]:
+    """The paths a step reads: its arguments' values that name an existing file or folder (its outputs,
+    ``--out``, ``--objects`` and ``--plot``, and its text arguments left out)."""
+    out = []
+    for name, value in vars(args).items():
+        if name in OUTPUT_FLAGS or name in TEXT_FLAGS or name in ("command", "func", "verbose", "threads"):
+            continue
+        for item in value if isinstance(value, list) else [value]:
+            if isinstance(item, str) and item and os.path.exists(item):
+                out.append(Path(item))
+    return out
+
+
 def _run_step(args: argparse.Namespace) -> None:
-    """Run the step ``args.command`` (its handler module's ``run``)."""
-    handler(args.command)(args)
+    """Run the step ``args.command`` (its handler module's ``run``): its inputs are checked against their
+    manifests first, and every folder it writes must be its own (:mod:`trace3d.io`)."""
+    from .io import check_file_outputs, step_outputs, verify_inputs
+
+    inputs = step_inputs(args)
+    check_file_outputs([v for k in OUTPUT_FLAGS if isinstance(v := getattr(args, k, None), str) and v], inputs)
+    verify_inputs(inputs)
+    with step_outputs(args.command, inputs, BY_COMMAND[args.command].rules):
+        handler(args.command)(args)
+
+
+def _cmd_verify(args: argparse.Namespace) -> None:
+    """``trace3d verify <tree>``: every step output under the tree against its manifest."""
+    from .io import verify_tree
+
+    for root in args.paths:
+        if not Path(root).exists():
+            raise Trace3DError(f"{root}: no such file or folder; give a results folder.")
+    folders, problems = [], []
+    for root in args.paths:
+        found, damaged = verify_tree(root)
+        folders += found
+        problems += damaged
+    for problem in problems:
+        print(problem)
+    if problems:
+        raise Trace3DError(f"{len(problems)} file(s) in {len(folders)} step output(s) differ from their manifests "
+                           f"(listed above); rerun the rules named there.")
+    print(f"{len(folders)} step output(s) under {', '.join(args.paths)}: every file matches its manifest.")
 
 
 def _cmd_describe(args: argparse.Namespace) -> None:
@@ -252,6 +296,10 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("results", nargs="?", default="results", help="the results folder (default: results)")
     p.add_argument("--log", help="a Snakemake log (default: the newest in .snakemake/log/ of the current folder)")
     p.set_defaults(func=_cmd_progress)
+    p = sub.add_parser("verify", help="check every step output under a folder (results/) against its manifest "
+                                      "(.trace3d-step: sizes and SHA-256 of its files)")
+    p.add_argument("paths", nargs="+", metavar="PATH", help="results folder(s) or step output folder(s)")
+    p.set_defaults(func=_cmd_verify)
 
     p = sub.add_parser("describe", help="the step registry: steps, their flags and parameters with defaults, "
                                         "the lifting methods' keys, the variant defaults")
@@ -314,8 +362,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with limit_threads(args.threads):
             if args.command not in NO_KERNEL_COMMANDS:
-                from .compiling import compile_seconds, install
+                from .compiling import check_cache_folder, compile_seconds, install
 
+                check_cache_folder()
                 install()
             args.func(args)
             if args.command not in NO_KERNEL_COMMANDS and compile_seconds() > 0:
@@ -323,6 +372,11 @@ def main(argv: list[str] | None = None) -> int:
     except Trace3DError as exc:
         sentence = " ".join(str(exc).split())  # one line, whatever a wrapped library message held
         print(f"trace3d {args.command}: error: {sentence}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # disk full, read-only, permission, a path gone: the machine's, not a bug
+        from .io import os_error_sentence
+
+        print(f"trace3d {args.command}: error: {os_error_sentence(exc)}", file=sys.stderr)
         return 2
     except BaseException as exc:  # noqa: BLE001 - an interruption is reported in one line, anything else re-raised
         stop = _interrupted(exc)

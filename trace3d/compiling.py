@@ -67,6 +67,30 @@ def install() -> None:
     event.register("numba:compile", _CompileListener())
 
 
+def check_cache_folder() -> None:
+    """Refuse (one sentence) a ``NUMBA_CACHE_DIR`` this process cannot write: numba would then quietly
+    keep its kernels beside the sources (or nowhere) and compile them again in every run, while the
+    notice above named the folder as the cache."""
+    cache = os.environ.get("NUMBA_CACHE_DIR")
+    if not cache:
+        return
+    import tempfile
+
+    from .errors import Trace3DError
+    from .io import os_error_sentence
+
+    try:
+        os.makedirs(cache, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=cache, prefix=".write-test-"):
+            pass
+    except OSError as exc:
+        if exc.filename is None:
+            exc.filename = cache
+        reason = os_error_sentence(exc).split("; nothing was written")[0]
+        raise Trace3DError(f"NUMBA_CACHE_DIR cannot hold the compiled kernels ({reason}); point NUMBA_CACHE_DIR at a "
+                           f"writable folder, or unset it.") from exc
+
+
 def compile_seconds() -> float:
     """Seconds this process has spent compiling kernels (0 when every kernel came from the cache)."""
     return float(_state["seconds"])

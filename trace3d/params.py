@@ -87,7 +87,9 @@ def from_mapping(cls: type[T], values: Mapping[str, Any] | None, where: str = "p
         )
     kwargs = {k: _check_type(v, hints[k], f"{where}.{k}") for k, v in values.items()}
     try:
-        return cls(**kwargs)
+        params = cls(**kwargs)
+        check_ranges(params)
+        return params
     except (TypeError, ValueError) as exc:
         text = str(exc)
         raise ConfigError(f"{where}: {text}" + ("" if text.endswith((".", "?")) else ".")) from exc
@@ -99,6 +101,21 @@ def yaml_problem(exc: Exception) -> str:
     mark = getattr(exc, "problem_mark", None)
     where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
     return " ".join(f"{problem}{where}".split())
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader refusing a key given twice in one mapping (it would keep the last silently),
+    as the workflow refuses one in a config file (rules/common.smk)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            if isinstance(key, (str, int, float, bool)) and key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"key {key!r} appears twice in one mapping; keep one", key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
 
 
 def load_params_arg(text: str | None) -> dict:
@@ -113,10 +130,12 @@ def load_params_arg(text: str | None) -> dict:
         source = str(path)
         text = path.read_text()
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{source}: not valid JSON/YAML ({yaml_problem(exc)}); "
-                          f"check the brackets and quotes.") from exc
+        if "appears twice" in str(getattr(exc, "problem", "")):
+            raise ConfigError(f"{source}: {yaml_problem(exc)}.") from exc
+        raise ConfigError(f"{source}: not valid JSON/YAML ({yaml_problem(exc)}); check the brackets and "
+                          f"quotes.") from exc
     if data is None:
         return {}
     if not isinstance(data, dict):
@@ -129,18 +148,83 @@ def to_dict(params: Any) -> dict:
     return json.loads(json.dumps(dataclasses.asdict(params)))
 
 
-def check_ranges(params: Any, unit: tuple[str, ...] = (), nonnegative: tuple[str, ...] = (),
-                 at_least: Mapping[str, float] | None = None) -> None:
-    """Refuse out-of-range fields of a parameter dataclass (``ValueError`` naming the field): ``unit``
-    fields must lie in [0, 1], ``nonnegative`` ones be >= 0, and ``at_least`` maps a field to its
-    smallest allowed value."""
-    for name in unit:
+# ----------------------------------------------------------------------------------------------
+# ranges: declared once per field, checked here and written into the config schema (trace3d.schema)
+# ----------------------------------------------------------------------------------------------
+#
+# A parameter dataclass declares the range of each numeric field in ``RANGES: ClassVar[dict]``: field ->
+# ``">= 0"``, ``"> 0"``, ``"<= 1"``, ``"< 1"``, an interval ``"[0, 1]"``, ``"(0, 1]"``, ``"[0, 1)"``,
+# ``"(0, 1)"``, or alternatives joined by ``|`` (``"0 | >= 2"``: 0, or 2 and more); a list field's range
+# holds for each item, and null (an optional field left to its preset) is always allowed.
+# :func:`from_mapping` refuses a value outside it (the step's one sentence) and :mod:`trace3d.schema`
+# writes it as JSON-schema bounds (the dry run's refusal), so the two cannot disagree.  Checks that
+# relate two fields (``initial_sh_degree <= sh_degree``) stay in the dataclass's ``__post_init__``.
+# A dataclass whose file is not this project's to change here declares its ranges in
+# :data:`DECLARED_RANGES` (by ``module:Class``), with the same effect.
+
+DECLARED_RANGES: dict[str, dict[str, str]] = {
+    "trace3d.tracing.merge:MergeParams": {
+        "threshold": "[0, 1]", "association_share": "(0, 1)", "min_view_share": "[0, 1)",
+        "min_gaussians": ">= 0", "min_views": ">= 0", "min_gaussian_views": ">= 0"},
+    "trace3d.segment:SegmentParams": {
+        "samples": ">= 2", "min_share": "(0, 1)", "seed": ">= 0", "min_gaussians": ">= 1", "min_pixels": ">= 1",
+        "turntable_views": ">= 1", "turntable_size": ">= 8"},
+    "trace3d.lifting.contrastive:ContrastiveParams": {
+        "dim": ">= 1", "iterations": ">= 1", "pixels": ">= 2", "pool_pixels": ">= 2", "lr": "> 0",
+        "temperature": "> 0", "temperature_pos": "> 0", "temperature_neg": "> 0", "seed": ">= 0"},
+}
+
+
+def _bound(text: str) -> dict:
+    """One alternative of a range as JSON-schema keywords."""
+    text = text.strip()
+    for op, key in ((">=", "minimum"), ("<=", "maximum"), (">", "exclusiveMinimum"), ("<", "exclusiveMaximum")):
+        if text.startswith(op):
+            return {key: _number(text[len(op):])}
+    if text[:1] in "[(" and text[-1:] in "])":
+        low, high = (part.strip() for part in text[1:-1].split(","))
+        return {("minimum" if text[0] == "[" else "exclusiveMinimum"): _number(low),
+                ("maximum" if text[-1] == "]" else "exclusiveMaximum"): _number(high)}
+    return {"const": _number(text)}
+
+
+def _number(text: str) -> int | float:
+    value = float(text)
+    return int(value) if value.is_integer() and "." not in text else value
+
+
+def range_schema(spec: str) -> dict:
+    """The JSON-schema keywords of a declared range (``"(0, 1]"`` -> exclusiveMinimum 0, maximum 1)."""
+    alternatives = [_bound(part) for part in spec.split("|")]
+    return alternatives[0] if len(alternatives) == 1 else {"anyOf": alternatives}
+
+
+def _inside(value: float, bound: dict) -> bool:
+    checks = {"minimum": lambda b: value >= b, "maximum": lambda b: value <= b,
+              "exclusiveMinimum": lambda b: value > b, "exclusiveMaximum": lambda b: value < b,
+              "const": lambda b: value == b}
+    return all(checks[key](b) for key, b in bound.items())
+
+
+def declared_ranges(cls: type) -> dict[str, str]:
+    """Field -> declared range of the parameter dataclass ``cls`` (its ``RANGES`` and :data:`DECLARED_RANGES`)."""
+    out = dict(DECLARED_RANGES.get(f"{cls.__module__}:{cls.__name__}", {}))
+    out.update(getattr(cls, "RANGES", {}) or {})
+    return out
+
+
+def check_ranges(params: Any) -> None:
+    """Refuse a field of the parameter dataclass ``params`` outside its declared range (``ValueError``
+    naming the field, the range and the value)."""
+    for name, spec in declared_ranges(type(params)).items():
         value = getattr(params, name)
-        if not 0.0 <= value <= 1.0:
-            raise ValueError(f"{name} must be in [0, 1], got {value}")
-    for name in nonnegative:
-        if getattr(params, name) < 0:
-            raise ValueError(f"{name} must be >= 0, got {getattr(params, name)}")
-    for name, low in (at_least or {}).items():
-        if getattr(params, name) < low:
-            raise ValueError(f"{name} must be >= {low:g}, got {getattr(params, name)}")
+        items = value if isinstance(value, (list, tuple)) else [value]
+        for item in items:
+            if item is None or isinstance(item, bool) or not isinstance(item, (int, float)):
+                continue
+            schema = range_schema(spec)
+            if not any(_inside(item, bound) for bound in schema.get("anyOf", [schema])):
+                shown = " or ".join(part.strip() if part.strip()[:1] in "[(<>" else f"= {part.strip()}"
+                                    for part in spec.split("|"))
+                shown = shown if shown[:1] in "<>=" else f"in {shown}"
+                raise ValueError(f"{name} must be {shown}, got {item}")

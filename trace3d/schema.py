@@ -258,11 +258,14 @@ def dataclass_schema(classes: list[type], drop: tuple[str, ...] = ()) -> dict:
 
     ``propertyNames`` lists the known keys, so that a misspelled key's error message names them all.
     """
+    from .params import declared_ranges, range_schema
+
     nested = _nested()
     collected: dict[str, list[tuple[dict, str]]] = {}
     for cls in classes:
         hints = typing.get_type_hints(cls)
         meanings = field_meanings(cls)
+        ranges = declared_ranges(cls)
         for f in dataclasses.fields(cls):
             if f.name in drop:
                 continue
@@ -270,6 +273,12 @@ def dataclass_schema(classes: list[type], drop: tuple[str, ...] = ()) -> dict:
                 schema = dataclass_schema([nested[(cls, f.name)]])
             else:
                 schema = type_schema(hints[f.name])
+            if f.name in ranges:  # the range check_ranges applies (to each item of a list)
+                bounds = range_schema(ranges[f.name])
+                if schema.get("type") == "array" or "array" in (schema.get("type") or ()):
+                    schema = {**schema, "items": {**schema.get("items", {}), **bounds}}
+                else:
+                    schema = {**schema, **bounds}
             default = _default(f)
             text = meanings.get(f.name) or ""
             shown = "null (preset)" if default is None else json.dumps(default)

@@ -140,6 +140,12 @@ class PosesParams:
     seed: int = 0
     colmap_log_level: Literal["info", "warning", "error"] = "info"
 
+    # each field's range: refused on input and in the config schema (trace3d.params.check_ranges)
+    RANGES = {"min_registered_fraction": "(0, 1]", "sequential_overlap": ">= 1", "max_num_features": ">= 1",
+              "max_image_size": ">= 1", "init_min_num_inliers": ">= 1", "min_num_matches": ">= 1",
+              "sift_peak_threshold": "> 0", "min_num_points": ">= 0", "depth_points": ">= 0",
+              "num_threads": "-1 | >= 1", "seed": ">= 0"}
+
     def __post_init__(self) -> None:
         if not 0.0 < self.min_registered_fraction <= 1.0:
             raise ValueError(f"min_registered_fraction must be in (0, 1], got {self.min_registered_fraction}")

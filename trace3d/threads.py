@@ -49,6 +49,10 @@ def limit_threads(count: int | None) -> Iterator[None]:
         return
     if count < 1:
         raise ConfigError(f"--threads must be >= 1, got {count}.")
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    if count > 4 * cores:  # thousands of OpenMP / numba threads crash the process instead of running
+        raise ConfigError(f"--threads {count} is more than 4 x the {cores} cores this process may use; give at most "
+                          f"{4 * cores} (usually the number of cores).")
     saved_env = {k: os.environ.get(k) for k in (*ENV_VARS, "NUMBA_NUM_THREADS")}
     saved_limit = _limit
     for key in ENV_VARS:

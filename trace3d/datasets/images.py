@@ -82,6 +82,10 @@ class ImagesParams:
     focal_guess: float = 1.2
     min_images: int = 3
 
+    # each field's range: refused on input and in the config schema (trace3d.params.check_ranges)
+    RANGES = {"max_side": ">= 0", "test_every": "0 | >= 2", "focal_px": "> 0", "focal_guess": "> 0",
+              "min_images": ">= 2"}
+
     def __post_init__(self) -> None:
         if self.max_side < 0:
             raise ValueError(f"max_side must be >= 0, got {self.max_side}")

@@ -87,6 +87,10 @@ class LLFFParams:
     scene_dir: str | None = None
     labels_dir: str | None = None
 
+    # each field's range: refused on input and in the config schema (trace3d.params.check_ranges)
+    RANGES = {"images_factor": ">= 1", "downscale": ">= 1", "test_every": ">= 0", "positive_fraction": "(0, 1]",
+              "negative_fraction": "(0, 1]", "prompt_seed": ">= 0"}
+
     def __post_init__(self) -> None:
         if self.images_factor < 1:
             raise ValueError(f"images_factor must be >= 1, got {self.images_factor}")

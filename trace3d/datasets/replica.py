@@ -120,6 +120,9 @@ class ReplicaParams:
     evaluated_ids: list[int] | None = None
     occlusion_free_views: str | None = None
 
+    # each field's range: refused on input and in the config schema (trace3d.params.check_ranges)
+    RANGES = {"frame_stride": ">= 1", "max_frames": ">= 0", "downscale": ">= 1"}
+
     def __post_init__(self) -> None:
         if self.frame_stride < 1:
             raise ValueError(f"frame_stride must be >= 1, got {self.frame_stride}")

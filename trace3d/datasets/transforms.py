@@ -93,6 +93,9 @@ class TransformsParams:
     frame_stride: int = 1
     min_images: int = 2
 
+    # each field's range: refused on input and in the config schema (trace3d.params.check_ranges)
+    RANGES = {"max_side": ">= 0", "test_every": "0 | >= 2", "frame_stride": ">= 1", "min_images": ">= 1"}
+
     def __post_init__(self) -> None:
         if self.max_side < 0:
             raise ValueError(f"max_side must be >= 0, got {self.max_side}")
@@ -128,7 +131,7 @@ class RawFrame:
 
 def _load_json(path: Path) -> dict:
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(path.read_text(encoding="utf-8-sig"))  # a byte-order mark (Windows editors) is skipped
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise Trace3DError(f"{path}: not valid JSON ({exc}).") from exc
     if not isinstance(data, dict) or not isinstance(data.get("frames"), list):
@@ -202,7 +205,7 @@ def resolve_image(frame: RawFrame) -> Path:
     file_path = frame.entry.get("file_path")
     if not isinstance(file_path, str) or not file_path:
         raise Trace3DError(f"{where} has no 'file_path'.")
-    path = Path(file_path)
+    path = Path(file_path.replace("\\", "/"))  # a path written on Windows (images\\0001.png) names the same file
     if not path.is_absolute():
         path = frame.json_path.parent / path
     if path.is_file():
@@ -396,6 +399,8 @@ def import_transforms(source: Path, out_dir: Path, params: TransformsParams) -> 
     sizes = {path: image_size(path) for path in paths}
     if len(set(sizes.values())) > 1:
         lacking = [f for f in frames if _number(f, "fl_x", True) is None and _number(f, "camera_angle_x", True) is None]
+        common = max(set(sizes.values()), key=list(sizes.values()).count)  # name a frame of an odd size first
+        lacking.sort(key=lambda f: sizes[paths[frames.index(f)]] == common)
         if lacking:
             shown = sorted({f"{w}x{h}" for w, h in sizes.values()})
             raise Trace3DError(

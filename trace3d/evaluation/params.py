@@ -79,6 +79,12 @@ class EvaluateParams:
     panoptic_min_share: float = 0.001
     panoptic_seed: int = 0
 
+    # each field's range: refused on input and in the config schema (trace3d.params.check_ranges)
+    RANGES = {"panoptic_samples": ">= 2", "panoptic_min_share": "(0, 1)", "min_pixels": ">= 1",
+              "max_occluded_fraction": "[0, 1]", "occlusion_depth_ratio": ">= 0", "alpha_eps": ">= 0",
+              "psnr_margin": ">= 0", "turntable_views": ">= 1", "turntable_size": ">= 8", "picture_objects": ">= 0",
+              "panoptic_seed": ">= 0"}
+
     def __post_init__(self) -> None:
         for key, value in PROTOCOL_VALUES[self.protocol].items():
             if getattr(self, key) is None:

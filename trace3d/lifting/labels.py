@@ -65,6 +65,9 @@ class LabelsParams:
     min_confidence: float = 0.5
     near: float = 0.01
 
+    # each field's range: refused on input and in the config schema (trace3d.params.check_ranges)
+    RANGES = {"min_confidence": "[0, 1]"}
+
     def __post_init__(self) -> None:
         if not 0.0 <= self.min_confidence <= 1.0:
             raise ValueError(f"min_confidence must lie in [0, 1], got {self.min_confidence}.")

@@ -57,6 +57,9 @@ class QueryParams:
     gaussian_share: float = 0.5
     near: float = 0.01
 
+    # each field's range: refused on input and in the config schema (trace3d.params.check_ranges)
+    RANGES = {"max_queries": ">= 1", "threshold_steps": ">= 2", "gaussian_share": "[0, 1)"}
+
     def __post_init__(self) -> None:
         if self.max_queries < 1 or self.threshold_steps < 2:
             raise ValueError(f"max_queries must be >= 1 and threshold_steps >= 2, got {self.max_queries}, "

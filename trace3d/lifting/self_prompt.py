@@ -61,6 +61,10 @@ class SelfPromptParams:
     seed: int = 0
     near: float = 0.01
 
+    # each field's range: refused on input and in the config schema (trace3d.params.check_ranges)
+    RANGES = {"points": ">= 1", "min_prompt_pixels": ">= 1", "gaussian_share": "[0, 1)", "mask_threshold": "(0, 1)",
+              "seed": ">= 0"}
+
     def __post_init__(self) -> None:
         if self.points < 1 or self.min_prompt_pixels < 1:
             raise ValueError(f"points and min_prompt_pixels must be >= 1, got {self.points}, {self.min_prompt_pixels}")

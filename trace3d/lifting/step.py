@@ -79,6 +79,12 @@ def run_lift(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Pat
     if labels_dir is None:
         raise ConfigError("lift: contrastive lifting needs --labels (the consistent instance maps).")
     maps = load_label_maps(labels_dir, [c.name for c in train], "instance map", [(c.width, c.height) for c in train])
+    most = max((np.unique(m[m > 0]).size for m in maps), default=0)
+    warning = None
+    if most < 2:  # the loss pulls one instance together and pushes nothing apart: it reaches 0 and says nothing
+        warning = (f"no training view's instance map in {labels_dir} holds two instances (at most {most}); the "
+                   f"contrastive loss has nothing to separate, so the features will not tell objects apart")
+        log.warning("lift: %s; check the masks (or the merge) that made these maps", warning)
     features, history, timing = lift_features(model, train, maps, p, progress=progress)
     np.save(out_dir / "features.npy", features)
     write_history(out_dir / "loss.csv", history)
@@ -90,6 +96,8 @@ def run_lift(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Pat
     info = {"method": "contrastive", "params": to_dict(p), "gaussians": len(model), "dim": int(features.shape[1]),
             "seconds": time.perf_counter() - start, "final_loss": float(np.mean(tail)) if tail else None,
             **timing}
+    if warning:
+        info["warning"] = warning
     write_json(out_dir / "lift.json", info)
     log.info("contrastive lifting: %d Gaussians, %d iterations, final loss %.4f, %.1f s", len(model), p.iterations,
              info["final_loss"], info["seconds"])

@@ -81,6 +81,10 @@ class GraphParams:
     thin_pixels: float = 1.0
     reference_pixels: int = REFERENCE_PIXELS
 
+    # each field's range: refused on input and in the config schema (trace3d.params.check_ranges)
+    RANGES = {"sigma": ">= 0", "min_size": "[0, 1)", "min_area": "[0, 1)", "max_area": "(0, 1]",
+              "thin_pixels": ">= 0", "reference_pixels": ">= 1", "scales": "> 0"}
+
     def __post_init__(self) -> None:
         self.scales = [float(s) for s in self.scales]
         if len(self.scales) < 3:

@@ -48,7 +48,6 @@ from ..params import check_ranges
 from ..scene import ObjectTable, Scene
 from .sam import nest_covered_masks
 from .simulate import (
-    BORDER_AND_SIZE_FIELDS,
     DEFAULT_FLAT_CATEGORIES,
     _analyse_view,
     _LevelTables,
@@ -132,18 +131,19 @@ class NestedParams:
     nms_iou: float = 0.7
     nest_coverage: float = 0.9
 
+    # each field's range: refused on input and in the config schema (trace3d.params.check_ranges)
+    RANGES = {"inconsistency": "[0, 1]", "part_rate": "[0, 1]", "subpart_rate": "[0, 1]", "group_rate": "[0, 1]",
+              "whole_drop_rate": "[0, 1]", "miss_rate": "[0, 1]", "stuff_split_rate": "[0, 1]",
+              "stuff_whole_drop_rate": "[0, 1]", "drop_cover": "[0, 1]", "edge_contrast": "[0, 1]",
+              "small_fraction": "[0, 1]", "flat_fraction": "[0, 1]", "jitter_pixels": ">= 0", "warp_pixels": ">= 0",
+              "thin_pixels": ">= 0", "touch_pixels": ">= 0", "min_mask_pixels": ">= 0", "seed": ">= 0",
+              "max_subparts": ">= 2", "stuff_max_pieces": ">= 2", "warp_cells": ">= 1", "cut_cells": ">= 1",
+              "nms_iou": "(0, 1]", "nest_coverage": "(0, 1]"}
+
     def __post_init__(self) -> None:
         if self.model != "nested":
             raise ValueError(f"model must be 'nested' for these parameters, got {self.model!r}")
-        check_ranges(self, unit=("inconsistency", "part_rate", "subpart_rate", "group_rate", "whole_drop_rate",
-                                 "miss_rate", "stuff_split_rate", "stuff_whole_drop_rate", "drop_cover",
-                                 "edge_contrast", "small_fraction", "flat_fraction"),
-                     nonnegative=BORDER_AND_SIZE_FIELDS,
-                     at_least={"max_subparts": 2, "stuff_max_pieces": 2, "warp_cells": 1, "cut_cells": 1})
-        if not 0.0 < self.nms_iou <= 1.0:
-            raise ValueError(f"nms_iou must be in (0, 1], got {self.nms_iou}")
-        if not 0.0 < self.nest_coverage <= 1.0:
-            raise ValueError(f"nest_coverage must be in (0, 1], got {self.nest_coverage}")
+        check_ranges(self)
         self.flat_categories = [c.lower() for c in self.flat_categories]
 
     def rate(self, name: str) -> float:

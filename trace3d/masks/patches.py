@@ -75,6 +75,9 @@ class PatchParams:
     split_disconnected: bool = False
     preview_views: int = 4
 
+    # each field's range: refused on input and in the config schema (trace3d.params.check_ranges)
+    RANGES = {"min_patch_pixels": ">= 0", "min_patch_width": ">= 0", "preview_views": ">= 0"}
+
     def __post_init__(self) -> None:
         if self.min_patch_pixels < 0:
             raise ValueError(f"min_patch_pixels must be >= 0, got {self.min_patch_pixels}")

@@ -62,6 +62,9 @@ class SamParams:
     max_small_pixels: int = 96
     nest_coverage: float = 0.9
 
+    # each field's range: refused on input and in the config schema (trace3d.params.check_ranges)
+    RANGES = {"nest_coverage": "(0, 1]"}
+
     def __post_init__(self) -> None:
         if self.model_type not in MODEL_TYPES:
             raise ValueError(f"model_type must be one of {list(MODEL_TYPES)}, got {self.model_type!r}")

@@ -43,8 +43,6 @@ from ..scene import ObjectTable, Scene
 log = logging.getLogger(__name__)
 
 DEFAULT_FLAT_CATEGORIES = ("wall", "floor", "ceiling", "rug", "carpet")
-# pixel sizes both simulated mask models share (never negative)
-BORDER_AND_SIZE_FIELDS = ("jitter_pixels", "warp_pixels", "thin_pixels", "touch_pixels", "min_mask_pixels")
 
 
 @dataclasses.dataclass
@@ -89,12 +87,16 @@ class SimulateParams:
     touch_pixels: int = 4
     min_mask_pixels: int = 16
 
+    # each field's range: refused on input and in the config schema (trace3d.params.check_ranges)
+    RANGES = {"inconsistency": "[0, 1]", "part_rate": "[0, 1]", "group_rate": "[0, 1]", "multi_rate": "[0, 1]",
+              "miss_rate": "[0, 1]", "split_rate": "[0, 1]", "small_fraction": "[0, 1]", "flat_fraction": "[0, 1]",
+              "jitter_pixels": ">= 0", "warp_pixels": ">= 0", "thin_pixels": ">= 0", "touch_pixels": ">= 0",
+              "min_mask_pixels": ">= 0", "seed": ">= 0", "warp_cells": ">= 1"}
+
     def __post_init__(self) -> None:
         if self.model != "one_level":
             raise ValueError(f"model must be 'one_level' for these parameters, got {self.model!r}")
-        check_ranges(self, unit=("inconsistency", "part_rate", "group_rate", "multi_rate", "miss_rate", "split_rate",
-                                 "small_fraction", "flat_fraction"),
-                     nonnegative=BORDER_AND_SIZE_FIELDS, at_least={"warp_cells": 1})
+        check_ranges(self)
         self.flat_categories = [c.lower() for c in self.flat_categories]
 
     def rate(self, name: str) -> float:

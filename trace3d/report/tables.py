@@ -263,9 +263,10 @@ def write_tables(results: Path, out_dir: Path, evals: list[Path] | None = None) 
     """Write every table as .md, .csv and .tex into ``out_dir``; returns the paths written.
     ``evals`` restricts the input to those evaluate folders (the workflow passes its own)."""
     out_dir = Path(out_dir)
+    tables = build_tables(results, evals)  # before the folder is made: a refused input leaves no empty --out
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
-    for table in build_tables(results, evals):
+    for table in tables:
         for ext, text in (("md", table.markdown()), ("csv", table.csv()), ("tex", table.latex())):
             path = out_dir / f"{table.name}.{ext}"
             with atomic_file(path) as tmp:

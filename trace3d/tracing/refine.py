@@ -93,6 +93,10 @@ class RefineParams:
     seed: int = 0
     highlight_views: int = 4
 
+    # each field's range: refused on input and in the config schema (trace3d.params.check_ranges)
+    RANGES = {"gamma": "(0, 1]", "ambiguity_threshold": "[0, 1)", "scale_divisor": "> 0", "iterations": ">= 1",
+              "detect_at": ">= 0", "schedule_scale": "> 0", "seed": ">= 0"}
+
     def __post_init__(self) -> None:
         for key, value in PRESET_VALUES[self.preset].items():
             if getattr(self, key) is None:

@@ -108,6 +108,20 @@ class TrainParams:
     # give other bits, as deterministic (trace3d.render.gradient_buffers).
     grad_buffers: int = 2
 
+    # each field's range: refused on input and in the config schema (trace3d.params.check_ranges)
+    RANGES = {"iterations": ">= 1", "densify_interval": ">= 1", "opacity_reset_interval": ">= 1",
+              "sh_degree_interval": ">= 1", "checkpoint_interval": ">= 1", "init_max_points": ">= 1",
+              "depth_init_stride": ">= 1", "random_init_count": ">= 1", "split_count": ">= 1",
+              "max_gaussians": ">= 1", "log_interval": ">= 1", "grad_buffers": ">= 1", "schedule_scale": "> 0",
+              "sh_degree": "[0, 3]", "initial_sh_degree": "[0, 3]", "init_opacity": "(0, 1)",
+              "lambda_dssim": "[0, 1]", "depth_ratio": "[0, 1]", "position_lr_init": ">= 0",
+              "position_lr_final": ">= 0", "feature_lr": ">= 0", "opacity_lr": ">= 0", "scaling_lr": ">= 0",
+              "rotation_lr": ">= 0", "lambda_normal": ">= 0", "lambda_distortion": ">= 0",
+              "densify_grad_threshold": ">= 0", "percent_dense": ">= 0", "opacity_cull": ">= 0",
+              "max_screen_size": ">= 0", "max_world_size": ">= 0", "near": ">= 0", "opacity_reset_grace": ">= 0",
+              "torch_threads": ">= 0", "densify_from": ">= 0", "densify_until": ">= 0", "normal_from": ">= 0",
+              "distortion_from": ">= 0", "random_init_margin": ">= 0", "seed": ">= 0"}
+
     def __post_init__(self) -> None:
         positive = ("iterations", "densify_interval", "opacity_reset_interval", "sh_degree_interval",
                     "checkpoint_interval", "init_max_points", "depth_init_stride", "random_init_count",

@@ -64,6 +64,11 @@ class SyntheticParams:
     shadows: bool = True
     min_visible_pixels: int = 64
 
+    # each field's range: refused on input and in the config schema (trace3d.params.check_ranges)
+    RANGES = {"width": ">= 8", "height": ">= 8", "fov_x_deg": "[20, 150]", "num_views": ">= 2", "test_every": ">= 2",
+              "num_objects": ">= 1", "supersample": "[1, 8]", "texture_scale": "> 0", "texture_contrast": ">= 0",
+              "min_visible_pixels": ">= 0", "camera_height": ">= 0.5", "seed": ">= 0"}
+
     def __post_init__(self) -> None:
         where = "synthetic params"
         if self.width < 8 or self.height < 8:

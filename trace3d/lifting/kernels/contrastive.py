@@ -39,9 +39,13 @@ from torch import Tensor
 from ...errors import Trace3DError
 from ...render.kernels.tiles import exp_taylor8
 
-# Reassociation lets the per-row sums vectorise (a fixed order per compiled loop: results stay
-# deterministic and independent of the thread count); the exp keeps value-preserving flags only.
-PAIR_MATH = {"nsz", "reassoc", "contract", "arcp"}
+# No reassociation: every sum is written so that it vectorises as it stands (16 lane partials added in a
+# fixed tree, or vectors along the pixels), so the bits do not depend on how LLVM vectorises a loop. With
+# "reassoc" they did: numba optimises a parallel loop's body once on its own and once more inside the
+# kernel's module, a process that compiled the kernel runs the first and one that loads it from the
+# cache the second, and with reassociation the two summed the rows in other orders (30 of 4,096
+# features of a tiny lift differed in the last bits, issue 49; tests/test_kernel_cache.py).
+PAIR_MATH = {"nsz", "contract", "arcp"}
 
 
 @njit(inline="always", fastmath={"nsz"})
@@ -79,10 +83,12 @@ def _anchor_span(starts, ends, uu, v0):
 def _dot16(f, x, o, v):
     """sum_k x[o + k] f[o + k, v] over k < 16 written out, so that a loop over v around it vectorises
     along v with the 16 products in registers (a loop over k with += spills the partial sums)."""
-    return (x[o + 0] * f[o + 0, v] + x[o + 1] * f[o + 1, v] + x[o + 2] * f[o + 2, v] + x[o + 3] * f[o + 3, v] +
-            x[o + 4] * f[o + 4, v] + x[o + 5] * f[o + 5, v] + x[o + 6] * f[o + 6, v] + x[o + 7] * f[o + 7, v] +
-            x[o + 8] * f[o + 8, v] + x[o + 9] * f[o + 9, v] + x[o + 10] * f[o + 10, v] + x[o + 11] * f[o + 11, v] +
-            x[o + 12] * f[o + 12, v] + x[o + 13] * f[o + 13, v] + x[o + 14] * f[o + 14, v] + x[o + 15] * f[o + 15, v])
+    # a balanced tree (written out: no reassociation is allowed), four chains deep instead of sixteen
+    s0 = (x[o + 0] * f[o + 0, v] + x[o + 1] * f[o + 1, v]) + (x[o + 2] * f[o + 2, v] + x[o + 3] * f[o + 3, v])
+    s1 = (x[o + 4] * f[o + 4, v] + x[o + 5] * f[o + 5, v]) + (x[o + 6] * f[o + 6, v] + x[o + 7] * f[o + 7, v])
+    s2 = (x[o + 8] * f[o + 8, v] + x[o + 9] * f[o + 9, v]) + (x[o + 10] * f[o + 10, v] + x[o + 11] * f[o + 11, v])
+    s3 = (x[o + 12] * f[o + 12, v] + x[o + 13] * f[o + 13, v]) + (x[o + 14] * f[o + 14, v] + x[o + 15] * f[o + 15, v])
+    return (s0 + s1) + (s2 + s3)
 
 
 @njit(inline="always", fastmath=PAIR_MATH)
@@ -93,27 +99,47 @@ def _exp_unit(e):
 
 
 @njit(inline="always", fastmath=PAIR_MATH)
-def _kernel_span(grow, nu, nv, wu, wv, a, kind, lo, hi, drow, col_den, col_num, positive):
-    """Kernel values over the tile columns [lo, hi) of one anchor row, all with the same scale ``a``
-    (inside or outside the anchor's instance): k' into ``drow``, k into the column sums (and the
-    numerator's column sums if ``positive``); returns the row's sum of k."""
-    total = np.float32(0.0)
-    for v in range(lo, hi):
-        d2 = max(nu + nv[v] - np.float32(2.0) * grow[v], np.float32(0.0))
-        e = _exp_neg(a * d2)
-        w = wu * wv[v]
-        if kind == 0:
-            k = e * w
-            dkv = -a * k
-        else:
-            k = _exp_unit(e) * w
-            dkv = -a * e * k
-        drow[v] = dkv
-        total += k
-        col_den[v] += k
-        if positive:
-            col_num[v] += k
-    return total
+def _lane_sum(part):
+    """The sum of 16 lane partials in a fixed tree."""
+    a = (part[0] + part[1]) + (part[2] + part[3])
+    b = (part[4] + part[5]) + (part[6] + part[7])
+    c = (part[8] + part[9]) + (part[10] + part[11])
+    d = (part[12] + part[13]) + (part[14] + part[15])
+    return (a + b) + (c + d)
+
+
+@njit(inline="always", fastmath=PAIR_MATH)
+def _kernel_row(grow, nu, nv, wu, wv, a_pos, a_neg, kind, lo, hi, drow, col_den, col_num, part_den, part_num,
+                self_col):
+    """Kernel values of one anchor row over the tile's columns, scale ``a_pos`` inside the anchor's
+    instance (columns [lo, hi)) and ``a_neg`` outside: k' into ``drow``, k into the column sums (and the
+    numerator's inside the instance), and the row's sums of k as 16 lane partials (``part_den``, all
+    columns; ``part_num``, the instance's), one vector of 16 columns at a time. Column ``self_col`` (the
+    anchor itself under kind 2; -1: none) counts in the denominator only, with k' = 0."""
+    for lane in range(LANES):
+        part_den[lane] = np.float32(0.0)
+        part_num[lane] = np.float32(0.0)
+    for b in range(0, TILE, LANES):
+        for lane in range(LANES):
+            v = b + lane
+            inside = lo <= v < hi
+            a = a_pos if inside else a_neg
+            d2 = max(nu + nv[v] - np.float32(2.0) * grow[v], np.float32(0.0))
+            e = _exp_neg(a * d2)
+            w = wu * wv[v]
+            if kind == 0:
+                k = e * w
+                dkv = -a * k
+            else:
+                k = _exp_unit(e) * w
+                dkv = -a * e * k
+            own = v == self_col
+            drow[v] = np.float32(0.0) if own else dkv
+            col_den[v] += k
+            part_den[lane] += k
+            kin = k if inside and not own else np.float32(0.0)
+            col_num[v] += kin
+            part_num[lane] += kin
 
 
 @njit(parallel=True, cache=True, fastmath=PAIR_MATH)
@@ -148,24 +174,17 @@ def _pair_tiles(ft, norms, starts, ends, valid, a_pos, a_neg, kind, ti, tj, dkt,
         wv = valid[v0:v0 + TILE]
         col_den = np.zeros(TILE, np.float32)
         col_num = np.zeros(TILE, np.float32)
+        part_den = np.empty(LANES, np.float32)
+        part_num = np.empty(LANES, np.float32)
         for u in range(TILE):
-            grow = gram[u]
             nu = norms[u0 + u]
             wu = valid[u0 + u]
-            drow = dk[u]
             lo, hi = _anchor_span(starts, ends, u0 + u, v0)
-            if kind == 2 and i == j:  # the anchor itself (column u of a diagonal tile): denominator only
-                s_num = _kernel_span(grow, nu, nv, wu, wv, a_pos, kind, lo, u, drow, col_den, col_num, True)
-                s_num += _kernel_span(grow, nu, nv, wu, wv, a_pos, kind, u + 1, hi, drow, col_den, col_num, True)
-                s_den = _kernel_span(grow, nu, nv, wu, wv, a_pos, kind, u, u + 1, drow, col_den, col_num, False)
-                drow[u] = np.float32(0.0)
-            else:
-                s_num = _kernel_span(grow, nu, nv, wu, wv, a_pos, kind, lo, hi, drow, col_den, col_num, True)
-                s_den = np.float32(0.0)
-            s_den += _kernel_span(grow, nu, nv, wu, wv, a_neg, kind, 0, lo, drow, col_den, col_num, False)
-            s_den += _kernel_span(grow, nu, nv, wu, wv, a_neg, kind, hi, TILE, drow, col_den, col_num, False)
-            pden[j, u0 + u] = s_den + s_num
-            pnum[j, u0 + u] = s_num
+            self_col = u if kind == 2 and i == j else -1  # kind 2: the anchor itself, denominator only
+            _kernel_row(gram[u], nu, nv, wu, wv, a_pos, a_neg, kind, lo, hi, dk[u], col_den, col_num, part_den,
+                        part_num, self_col)
+            pden[j, u0 + u] = _lane_sum(part_den)
+            pnum[j, u0 + u] = _lane_sum(part_num)
         if i != j:
             for v in range(TILE):
                 pden[i, v0 + v] = col_den[v]
@@ -202,40 +221,39 @@ def _grad_tiles(ft, starts, ends, inv_den, inv_num, ti, tj, dkt, gpart):
         fv = ft[:, v0:v0 + TILE].copy()
         fu = ft[:, u0:u0 + TILE].copy()
         out = gpart[j]
-        for u in range(0, TILE, 4):  # rows of I: sum_v c_uv [f_v, 1], four rows per sweep
-            c0 = coef[u]
-            c1 = coef[u + 1]
-            c2 = coef[u + 2]
-            c3 = coef[u + 3]
-            t0 = np.float32(0.0)
-            t1 = np.float32(0.0)
-            t2 = np.float32(0.0)
-            t3 = np.float32(0.0)
-            for v in range(TILE):
-                t0 += c0[v]
-                t1 += c1[v]
-                t2 += c2[v]
-                t3 += c3[v]
-            out[dim, u0 + u] = t0
-            out[dim, u0 + u + 1] = t1
-            out[dim, u0 + u + 2] = t2
-            out[dim, u0 + u + 3] = t3
+        # rows of I: sum_v c_uv [f_v, 1], accumulated as vectors along u (coef transposed)
+        coef_t = coef.T.copy()
+        acc = np.zeros((dim + 1, TILE), np.float32)
+        for v in range(0, TILE, 8):  # eight columns per sweep: one load and store of a row per 8 products
+            c0 = coef_t[v]
+            c1 = coef_t[v + 1]
+            c2 = coef_t[v + 2]
+            c3 = coef_t[v + 3]
+            c4 = coef_t[v + 4]
+            c5 = coef_t[v + 5]
+            c6 = coef_t[v + 6]
+            c7 = coef_t[v + 7]
             for d in range(dim):
-                frow = fv[d]
-                t0 = np.float32(0.0)
-                t1 = np.float32(0.0)
-                t2 = np.float32(0.0)
-                t3 = np.float32(0.0)
-                for v in range(TILE):
-                    f_v = frow[v]
-                    t0 += c0[v] * f_v
-                    t1 += c1[v] * f_v
-                    t2 += c2[v] * f_v
-                    t3 += c3[v] * f_v
-                out[d, u0 + u] = t0
-                out[d, u0 + u + 1] = t1
-                out[d, u0 + u + 2] = t2
-                out[d, u0 + u + 3] = t3
+                x = fv[d]
+                x0 = x[v]
+                x1 = x[v + 1]
+                x2 = x[v + 2]
+                x3 = x[v + 3]
+                x4 = x[v + 4]
+                x5 = x[v + 5]
+                x6 = x[v + 6]
+                x7 = x[v + 7]
+                arow = acc[d]
+                for u in range(TILE):
+                    arow[u] += (((x0 * c0[u] + x1 * c1[u]) + (x2 * c2[u] + x3 * c3[u]))
+                                + ((x4 * c4[u] + x5 * c5[u]) + (x6 * c6[u] + x7 * c7[u])))
+            arow = acc[dim]
+            for u in range(TILE):
+                arow[u] += ((c0[u] + c1[u]) + (c2[u] + c3[u])) + ((c4[u] + c5[u]) + (c6[u] + c7[u]))
+        for d in range(dim + 1):
+            arow = acc[d]
+            for u in range(TILE):
+                out[d, u0 + u] = arow[u]
         if i != j:  # rows of J: sum_u c_uv [f_u, 1], accumulated transposed (vectors along v)
             acc_t = np.zeros((dim + 1, TILE), np.float32)
             for u in range(0, TILE, 4):
@@ -250,10 +268,10 @@ def _grad_tiles(ft, starts, ends, inv_den, inv_num, ti, tj, dkt, gpart):
                     x3 = fu[d, u + 3]
                     arow = acc_t[d]
                     for v in range(TILE):
-                        arow[v] += x0 * c0[v] + x1 * c1[v] + x2 * c2[v] + x3 * c3[v]
+                        arow[v] += (x0 * c0[v] + x1 * c1[v]) + (x2 * c2[v] + x3 * c3[v])
                 arow = acc_t[dim]
                 for v in range(TILE):
-                    arow[v] += c0[v] + c1[v] + c2[v] + c3[v]
+                    arow[v] += (c0[v] + c1[v]) + (c2[v] + c3[v])
             out = gpart[i]
             for d in range(dim + 1):
                 arow = acc_t[d]
