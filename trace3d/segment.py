@@ -28,7 +28,7 @@ or ``graph`` source), the objects are what the lift separates *and* what hangs t
 evaluation clusters them: :func:`~trace3d.evaluation.panoptic.cluster_features`, then clusters that win
 fewer than ``min_pixels`` training pixels are dropped); ``method: hdbscan_graph`` splits those clusters
 into their pieces connected in 3D (light pieces go back to their cluster's heaviest one) and then runs
-steps 4 and 5. The choice of the defaults (measured on development rooms): docs/capture.md.
+steps 4 and 5. The choice of the defaults (measured on development rooms): docs/evaluation.md.
 
 **Files**: per object its Gaussians (``objects/<k>.ply``, the 3DGS/2DGS layout of
 :meth:`~trace3d.gaussians.GaussianModel.write_ply`) and the object alone from ``turntable_views``
@@ -99,7 +99,7 @@ class SegmentParams:
     min_size: float = 0.02
     min_gaussians: int = 20
     flat_ratio: float = 0.2
-    stuff_size: float = 0.25
+    stuff_size: float = 0.2
     samples: int = 8000
     seed: int = 0
     min_pixels: int | None = None
@@ -173,7 +173,8 @@ def gaussian_graph(means: np.ndarray, seen: np.ndarray, neighbours: int) -> Gaus
 
 def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
     """The threshold between the two modes of ``values`` (> 0) on a log scale: Otsu's split of their
-    histogram (the valley that best separates a low and a high class), returned on the original scale."""
+    ``bins``-bin histogram (the split that best separates a low and a high class; the middle of the first
+    run of equally good splits), returned on the original scale."""
     v = np.log(np.asarray(values, np.float64)[np.asarray(values) > 0])
     if v.size < 2 or v.max() <= v.min():
         return float(np.exp(v.max())) if v.size else 0.0
@@ -186,7 +187,11 @@ def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
     with np.errstate(divide="ignore", invalid="ignore"):
         between = w0 * w1 * (m0 / w0 - m1 / w1) ** 2
     between[~np.isfinite(between)] = -1.0
-    k = int(np.argmax(between[:-1]))
+    between = between[:-1]
+    # an empty stretch between the modes gives a plateau of equal splits: take its middle
+    best = np.flatnonzero(between >= between.max() * (1.0 - 1e-9))
+    run = best[best - best[0] == np.arange(best.size)]
+    k = int(run[len(run) // 2])
     return float(np.exp(edges[k + 1]))
 
 
@@ -198,7 +203,7 @@ def feature_valley(features: np.ndarray, weights: np.ndarray, pairs: int, seed: 
     Contrastive lifting pulls an instance's features together and pushes other instances' apart, so
     pairs on one object form a low mode and pairs on two objects (most pairs, in a scene of many
     objects) a high one; measured on lifts from exact, SAM-like and graph masks the valley lies at
-    5.6-6.3 while the modes lie at 1-3 and 14-16 (docs/capture.md)."""
+    5.6-7.6 while the modes lie at 1-3 and 14-16 (docs/evaluation.md)."""
     features = np.asarray(features, np.float64)
     weights = np.asarray(weights, np.float64)
     if len(features) < 2:
