@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from trace3d.extract import ClickScene, ExtractParams, select_connected, select_connected_reference
-from trace3d.segment import (SegmentParams, _find, _merge_edges, _merge_edges_reference, feature_valley,
-                             gaussian_graph, otsu_threshold, segment_gaussians)
+from trace3d.segment import (SegmentParams, _find, _merge_edges, _merge_edges_reference, feature_threshold,
+                             gaussian_graph, segment_gaussians)
 
 
 def _box(rng, centre, size, count):
@@ -75,19 +75,21 @@ def test_click_selects_the_object_under_it_and_not_its_far_twin():
                                   seg_click.segments().instance == seg_click.segments().instance[on_a[0]])
 
 
-def test_valley_separates_the_pair_modes():
+def test_threshold_tells_same_object_pairs_from_others():
+    """Objects as point clouds in 3D, each with its own feature point: the data's threshold lies above
+    almost every neighbour pair on one object and below almost every pair on two."""
     rng = np.random.default_rng(1)
     for spread, gap in ((0.3, 5.0), (1.0, 20.0)):
-        centres = rng.normal(0, gap, (12, 6))
-        label = rng.integers(0, 12, 5000)
-        feats = centres[label] + rng.normal(0, spread, (5000, 6))
-        t = feature_valley(feats, np.ones(5000), 50000, 0)
-        same = np.linalg.norm(feats[:2500] - feats[2500:], axis=1)[label[:2500] == label[2500:]]
-        assert np.percentile(same, 95) < t, (spread, gap, t)
-    # two log-normal modes around 1 and 100: the split lies between them (on a log scale, near 10)
-    values = np.exp(np.concatenate([rng.normal(0.0, 0.3, 300), rng.normal(np.log(100.0), 0.3, 900)]))
-    t = otsu_threshold(values)
-    assert 3.0 < t < 30.0, t
+        count = 12
+        label = np.repeat(np.arange(count), 400)
+        means = rng.random((label.size, 3)) * 0.5 + 3.0 * label[:, None]  # objects 3 apart in a row
+        centres = rng.normal(0, gap, (count, 6))
+        feats = centres[label] + rng.normal(0, spread, (label.size, 6))
+        graph = gaussian_graph(means, np.arange(label.size), 8)
+        t = feature_threshold(feats, np.ones(label.size), graph.edges, 50000, 0)
+        i, j = rng.integers(0, label.size, (2, 20000))
+        d = np.linalg.norm(feats[i] - feats[j], axis=1)
+        assert np.mean(d[label[i] == label[j]] > t) < 0.02 and np.mean(d[label[i] != label[j]] <= t) < 0.05, t
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

@@ -62,12 +62,12 @@ class ExtractParams:
             the clicked pixel's rendered feature, linked in 3D to the Gaussians under the click (module
             docstring); ``segment``: the ``trace3d segment`` object the click falls in; ``region``: the
             2D region grown from the click queried as a reference mask (the step before issue 48).
-        threshold: ``features``: the feature distance; ``None``: ``threshold_scale`` times the valley
-            between the lift's same-object and other-object pair distances
-            (:func:`~trace3d.segment.feature_valley`).
+        threshold: ``features``: the feature distance; ``None``: ``threshold_scale`` times the distance
+            that tells the lift's same-object pairs from other-object pairs
+            (:func:`~trace3d.segment.feature_threshold`).
         threshold_scale: see ``threshold``.
         neighbours: k of the kNN graph over the Gaussians' centres (``features``, ``segment``).
-        pairs, seed: the random pairs (and their seed) whose distances give the valley.
+        pairs, seed: the random pairs (and their seed) of that threshold.
         threshold_steps: ``region``: thresholds tried when growing the region from the click.
         stability_delta: ``region``: grid steps on either side over which a region's growth is measured.
         stability_tolerance: ``region``: regions whose relative growth is within this of the most stable
@@ -204,7 +204,7 @@ def grow_from_click(feature_map: np.ndarray, x: int, y: int, params: ExtractPara
 
 class ClickScene:
     """What every click on one lifted scene shares: the seen Gaussians' kNN graph, the feature
-    threshold (given, or ``threshold_scale`` x the lift's pair-distance valley) and, for
+    threshold (given, or ``threshold_scale`` x :func:`~trace3d.segment.feature_threshold`) and, for
     ``selection: segment``, the scene's segments (made on first use).
 
     Args:
@@ -213,7 +213,7 @@ class ClickScene:
     """
 
     def __init__(self, means: np.ndarray, features: np.ndarray, weights: np.ndarray, params: ExtractParams):
-        from .segment import feature_valley, gaussian_graph
+        from .segment import feature_threshold, gaussian_graph
 
         self.means = np.asarray(means, np.float64)
         self.features = np.asarray(features, np.float64)
@@ -222,11 +222,12 @@ class ClickScene:
         self.seen = np.flatnonzero(self.weights > 0)
         self.graph = gaussian_graph(self.means, self.seen, params.neighbours)
         if params.threshold is not None:
-            self.valley = None
+            self.data_threshold = None
             self.threshold = float(params.threshold)
         else:
-            self.valley = feature_valley(self.features[self.seen], self.weights[self.seen], params.pairs, params.seed)
-            self.threshold = params.threshold_scale * self.valley
+            self.data_threshold = feature_threshold(self.features[self.seen], self.weights[self.seen], self.graph.edges,
+                                           params.pairs, params.seed)
+            self.threshold = params.threshold_scale * self.data_threshold
         self._segments = None
 
     def segments(self):
@@ -460,7 +461,7 @@ def run_extract(scene, poses_dir: Path | None, gaussians_dir: Path, lift_dir: Pa
         click = ClickScene(model.means.detach().double().numpy(), lifted.features, lifted.visibility(), p)
         seeds, seed_weights = click_seeds(lifted.view_weights(camera), x, y)
         keep = click.select(feature_map[y, x], seeds, seed_weights)
-        facts = {"threshold": click.threshold, "valley": click.valley, "seeds": int(seeds.size)}
+        facts = {"threshold": click.threshold, "data_threshold": click.data_threshold, "seeds": int(seeds.size)}
         if p.selection == "segment":
             seg = click.segments()
             label = int(np.bincount(seg.instance[keep]).argmax()) if keep.any() else 0

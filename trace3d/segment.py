@@ -7,10 +7,9 @@ or ``graph`` source), the objects are what the lift separates *and* what hangs t
 1. **Graph**: the k nearest neighbours (``neighbours`` = 12) of every Gaussian seen in training
    (summed training blending weight > 0), by centre (:func:`gaussian_graph`).
 2. **Threshold from the data**: contrastive lifting pulls an instance's features together and pushes
-   other instances' apart, so the distances between random pairs of Gaussians (drawn by weight) have a
-   low mode (pairs on one object) and a high one (pairs on two); the valley between them is Otsu's
-   split of their log-histogram (:func:`feature_valley`). The join threshold is ``threshold_scale``
-   (1.5) times that valley.
+   other instances' apart, so neighbours in 3D (mostly on one object) have close features and random
+   pairs of Gaussians (mostly on two objects) far ones; the join threshold is ``threshold_scale`` (1)
+   times the distance at which the two samples' error shares are equal (:func:`feature_threshold`).
 3. **Growing**: the graph's edges in order of feature distance (Kruskal's order) join their two
    segments when the two segments' weighted mean features are within the threshold
    (:func:`_merge_edges`, a union-find): a chain of similar neighbours cannot leak from one object into
@@ -93,7 +92,7 @@ class SegmentParams:
     method: Literal["graph", "hdbscan_graph", "features"] = "graph"
     neighbours: int = 12
     feature_threshold: float | None = None
-    threshold_scale: float = 1.5
+    threshold_scale: float = 1.0
     pairs: int = 100000
     min_share: float = 0.001
     min_size: float = 0.02
@@ -171,49 +170,55 @@ def gaussian_graph(means: np.ndarray, seen: np.ndarray, neighbours: int) -> Gaus
     return GaussianGraph(seen, edges, lengths[first])
 
 
-def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
-    """The threshold between the two modes of ``values`` (> 0) on a log scale: Otsu's split of their
-    ``bins``-bin histogram (the split that best separates a low and a high class; the middle of the first
-    run of equally good splits), returned on the original scale."""
-    v = np.log(np.asarray(values, np.float64)[np.asarray(values) > 0])
-    if v.size < 2 or v.max() <= v.min():
-        return float(np.exp(v.max())) if v.size else 0.0
-    hist, edges = np.histogram(v, bins=bins)
-    centres = 0.5 * (edges[1:] + edges[:-1])
-    w0 = np.cumsum(hist)
-    w1 = w0[-1] - w0
-    m0 = np.cumsum(hist * centres)
-    m1 = m0[-1] - m0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        between = w0 * w1 * (m0 / w0 - m1 / w1) ** 2
-    between[~np.isfinite(between)] = -1.0
-    between = between[:-1]
-    # an empty stretch between the modes gives a plateau of equal splits: take its middle
-    best = np.flatnonzero(between >= between.max() * (1.0 - 1e-9))
-    run = best[best - best[0] == np.arange(best.size)]
-    k = int(run[len(run) // 2])
-    return float(np.exp(edges[k + 1]))
+def feature_threshold(features: np.ndarray, weights: np.ndarray, edges: np.ndarray, pairs: int, seed: int) -> float:
+    """The feature distance that tells "the same object" from "another object" in a lifted scene, from
+    the data alone: the equal-error point between two samples of distances,
 
+    * neighbours in 3D (the kNN graph's ``edges`` [E, 2], each weighted by its lighter end's weight):
+      mostly pairs on one object, and
+    * ``pairs`` random pairs (each end drawn with probability proportional to ``weights`` [S], seeded):
+      mostly pairs on two objects, the more so the more objects the scene has,
 
-def feature_valley(features: np.ndarray, weights: np.ndarray, pairs: int, seed: int) -> float:
-    """The feature distance that separates "same object" from "another object" in a lifted scene: the
-    valley between the two modes of the distances between ``pairs`` random pairs of Gaussians (each end
-    drawn with probability proportional to ``weights`` [S], seeded), found by :func:`otsu_threshold`.
-
-    Contrastive lifting pulls an instance's features together and pushes other instances' apart, so
-    pairs on one object form a low mode and pairs on two objects (most pairs, in a scene of many
-    objects) a high one; measured on lifts from exact, SAM-like and graph masks the valley lies at
-    5.6-7.6 while the modes lie at 1-3 and 14-16 (docs/evaluation.md)."""
+    i.e. the distance t at which the share of neighbour pairs farther than t plus the share of
+    other-object pairs closer than t is least: where the two distance densities cross (the valley
+    between them; in an empty gap, the gap's middle). Contrastive lifting pulls an instance's features
+    together and pushes other instances' apart. The random pairs that fall on one object are taken out
+    first: their share is estimated as twice the share of random pairs closer than the neighbours'
+    median distance.
+    Measured on development lifts (docs/evaluation.md) it lies at 4-12."""
     features = np.asarray(features, np.float64)
     weights = np.asarray(weights, np.float64)
-    if len(features) < 2:
+    if len(features) < 2 or not len(edges):
         return 1.0
+    near = np.sqrt(((features[edges[:, 0]] - features[edges[:, 1]]) ** 2).sum(1))
+    near_w = np.minimum(weights[edges[:, 0]], weights[edges[:, 1]])
     rng = np.random.default_rng(seed)
     p = weights / weights.sum()
     a = rng.choice(len(features), size=pairs, p=p)
     b = rng.choice(len(features), size=pairs, p=p)
-    d = np.sqrt(((features[a] - features[b]) ** 2).sum(1))
-    return otsu_threshold(d)
+    far = np.sort(np.sqrt(((features[a] - features[b]) ** 2).sum(1)))
+    order = np.argsort(near, kind="stable")
+    near, cum = near[order], np.cumsum(near_w[order])
+    median = near[min(np.searchsorted(cum, 0.5 * cum[-1]), near.size - 1)]
+    # random pairs on one object (many in a scene of few objects: a wall and a plant) are as close as
+    # neighbours: their share is twice the random pairs' share under the neighbours' median distance,
+    # and the pairs on two objects are what is left
+    same = min(0.99, 2.0 * np.searchsorted(far, median, side="right") / far.size)
+    grid = np.unique(np.concatenate([near, far]))
+    k = np.searchsorted(near, grid, side="right")
+    near_cdf = np.where(k > 0, cum[np.maximum(k - 1, 0)], 0.0) / cum[-1]  # share of neighbours <= t
+    far_cdf = np.searchsorted(far, grid, side="right") / far.size  # share of random pairs <= t
+    other_cdf = np.clip((far_cdf - same * near_cdf) / (1.0 - same), 0.0, 1.0)
+    # the errors of the cut at t: neighbours beyond it, other-object pairs within it; their sum is least
+    # where the two densities cross (in an empty gap between them: along the whole gap, whose middle is taken)
+    error = (1.0 - near_cdf) + other_cdf
+    best = np.flatnonzero(error <= error.min() + 1e-3)
+    first = best[0]
+    last = first
+    while last + 1 < grid.size and error[last + 1] <= error.min() + 1e-3:
+        last += 1
+    upper = grid[last + 1] if last + 1 < grid.size else grid[last]
+    return float(0.5 * (grid[first] + upper))
 
 
 @njit(cache=True)
@@ -347,8 +352,8 @@ def segment_gaussians(means: np.ndarray, features: np.ndarray, weights: np.ndarr
     if params.feature_threshold is not None:
         threshold, source = float(params.feature_threshold), "params"
     else:
-        valley = feature_valley(f, w, params.pairs, params.seed)
-        threshold, source = params.threshold_scale * valley, f"{params.threshold_scale:g} x the pair-distance valley {valley:.4g}"
+        base = feature_threshold(f, w, edges, params.pairs, params.seed)
+        threshold, source = params.threshold_scale * base, f"{params.threshold_scale:g} x the equal-error distance {base:.4g}"
     if params.method == "graph":
         # 1. grow segments along the kNN edges, in order of feature distance (ties by the edge's ends)
         grow = np.lexsort((edges[:, 1], edges[:, 0], fdist))

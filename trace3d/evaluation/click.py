@@ -54,7 +54,7 @@ def evaluate_clicks(lifted, gt, by_name: dict, params, min_pixels: int, near: fl
                         "views": [{"frame": f, "iou": float(v)} for f, v in zip(views, scores)]})
     miou = float(np.mean([o["iou"] for o in objects])) if objects else None
     out = {"mIoU": miou, "objects": len(objects), "selection": params.selection, "threshold": click.threshold,
-           "valley": click.valley, "min_pixels": int(min_pixels), "per_object": objects,
+           "data_threshold": click.data_threshold, "min_pixels": int(min_pixels), "per_object": objects,
            "seconds": time.perf_counter() - start}
     log.info("click extract (%s selection, threshold %.3g): mIoU %s over %d objects, %.1f s", params.selection,
              click.threshold, "n/a" if miou is None else f"{miou:.3f}", len(objects), out["seconds"])
