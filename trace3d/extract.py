@@ -256,9 +256,10 @@ class ClickScene:
         """[N] bool: the clicked object.
 
         Args:
-            query: [D] the rendered feature at the clicked pixel.
+            query: [D] the rendered feature at the clicked pixel (used when ``seed_weights`` is None).
             seeds: [K] indices of the Gaussians that blend into the clicked pixel; seed_weights: [K] their
-                blending weights there (``segment``: the segment with the most weight wins).
+                blending weights there: the query is then the feature of the Gaussian with the most weight
+                (``segment``: the segment with the most weight wins).
         """
         seeds = np.asarray(seeds, np.int64)
         if self.params.selection == "segment":
@@ -270,9 +271,14 @@ class ClickScene:
                 return np.zeros(len(self.means), bool)
             votes = np.bincount(labels[hit], weights=w[hit], minlength=seg.count + 1)
             return seg.instance == int(np.argmax(votes))
-        return self._unseen_follow(select_connected(self.features[self.seen], np.asarray(query, np.float64),
-                                                    self.graph.edges, np.searchsorted(self.seen, seeds[np.isin(
-                                                        seeds, self.seen)]), self.threshold))
+        query = np.asarray(query, np.float64)
+        if seed_weights is not None and seeds.size:
+            # the feature of the surface clicked on: the Gaussian with the most weight there (a rendered
+            # feature at an object's border blends two objects' features)
+            query = self.features[seeds[int(np.argmax(seed_weights))]]
+        inside = np.isin(seeds, self.seen)
+        return self._unseen_follow(select_connected(self.features[self.seen], query, self.graph.edges,
+                                                    np.searchsorted(self.seen, seeds[inside]), self.threshold))
 
 
 def select_connected(features: np.ndarray, query: np.ndarray, edges: np.ndarray, seeds: np.ndarray,
