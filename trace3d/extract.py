@@ -1,34 +1,34 @@
 """One object out by a click: ``trace3d extract --view V --point X,Y`` on a contrastively lifted scene.
 
-No reference mask is needed.  From the clicked pixel of training view V:
+No reference mask is needed. From the clicked pixel of training view V (``selection: features``, the
+default; SAGA-style, then 3D connectivity):
 
-1. render V's feature map F [H, W, D] (the lifted features, :class:`~trace3d.lifting.query.FeatureLifted`)
-   and take the clicked pixel's feature q;
-2. **grow** a region from the click: for thresholds t on an even grid of ``threshold_steps`` values in
-   (0, max ||F - q||], the region R(t) is the 4-connected component of {x : ||F(x) - q|| <= t} that
-   holds the click; the region kept is the most *stable* one (as MSER does for grey levels): the t
-   minimising the relative growth (|R(t + delta)| - |R(t - delta)|) / |R(t)| (delta =
-   ``stability_delta`` grid steps), among regions of at least ``min_region_pixels`` pixels whose grown
-   neighbour R(t + delta) covers less than ``max_region_fraction`` of the view (near-ties, within
-   ``stability_tolerance``, go to the widest run of thresholds).  Contrastive features
-   are nearly constant on an object and jump at its border, so the object is the region that stops
-   growing over the widest range of thresholds;
-3. that region is the reference mask of the paper's query (Sec. 3.5): the query points and their
-   thresholds come from :func:`~trace3d.lifting.query.find_query_points`, the object's masks at the
-   training views from those, and its Gaussians are traced from the masks
-   (:meth:`~trace3d.lifting.query.FeatureLifted.object_gaussians`) — the code the evaluation runs;
-4. an object is one piece: with ``connected`` (default), of the traced Gaussians only those linked in
-   3D (centres closer than ``link_scale`` times the set's median nearest-neighbour distance, chained)
-   to the Gaussians that blend into the clicked pixel (its 3x3 neighbourhood) are kept.  A view where
-   the object is absent can still pass the query's thresholds on another object's pixels, whose
-   Gaussians are then traced too; they are far from the click and are dropped here.
+1. **seeds**: the Gaussians that blend into the clicked pixel and its 8 neighbours (one trace of V);
+   the *query* is the lifted feature of the seed with the most blending weight at the click (the
+   surface clicked on; a rendered feature at an object's border blends two objects');
+2. **similar**: every Gaussian seen in training whose feature lies within the threshold of the query.
+   The threshold comes from the data (:func:`~trace3d.segment.feature_threshold`, times
+   ``threshold_scale``): where the feature distances of neighbours in 3D (mostly one object) and of
+   random pairs on two objects cross, the value ``trace3d segment`` joins segments with;
+3. **connected**: of the similar Gaussians only those linked to a similar seed through edges of the
+   Gaussians' kNN graph (``neighbours`` = 12, by centre) whose both ends are similar: another object
+   with the same feature elsewhere in the scene (a twin never seen beside it) is not taken;
+   Gaussians never seen in training follow their nearest seen neighbour.
+
+``selection: segment`` returns the ``trace3d segment`` object the click falls in (the segment holding
+the most of the seeds' weight); ``selection: region`` is the step before issue 48: a 2D region grown
+from the click in the rendered feature map (the most stable region over thresholds, as MSER), used as
+the reference mask of the paper's query (:func:`~trace3d.lifting.query.find_query_points`, the object's
+Gaussians traced from its masks at the training views) and, with ``connected``, cut to the traced
+Gaussians chained in 3D to those under the click.
 
 Writes into ``out_dir``: ``object.ply`` (the object's Gaussians, the 3DGS/2DGS PLY layout of
 :meth:`~trace3d.gaussians.GaussianModel.write_ply`, which Gaussian-splat viewers open), ``object.png``
-(the clicked view with the click and the object's mask, then the object rendered alone from
-``picture_views`` training views, those that show most of it), ``turntable.png`` (the object alone from ``turntable_views``
-directions around it) and ``extract.json`` (the click, the chosen threshold, the region, the query
-points, the Gaussian count and the settings).
+(the clicked view with the click and the object's mask there: the pixels where its Gaussians hold more
+of the rendered weight than the rest, :func:`object_mask`; then the object rendered alone from
+``picture_views`` training views, those that show most of it), ``turntable.png`` (the object alone from
+``turntable_views`` directions around it) and ``extract.json`` (the click, the selection, the
+threshold, the Gaussian count and the settings). Its click IoU on the rooms: docs/evaluation.md.
 """
 
 from __future__ import annotations
