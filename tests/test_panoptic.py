@@ -218,6 +218,10 @@ def test_evaluate_writes_panoptic_and_single_point_beside_the_old_keys(tiny_feat
     assert click["objects"] == 4 and click["mIoU"] > 0.4 and click["selection"] == "features"
     assert sorted(o["iou"] > 0.5 for o in click["per_object"]) == [False, True, True, True]
     assert all(len(o["point"]) == 2 and o["gaussians"] > 0 for o in click["per_object"])
+    # the 2D region growing of before, scored the same way
+    region = run(root, tmp_path / "r", single_point=False, panoptic=False, segment=False,
+                 click_selection="region")["click"]
+    assert region["selection"] == "region" and region["objects"] == 4 and 0.0 < region["mIoU"] <= 1.0
     # every feature equal: the segments are the kNN graph's pieces in 3D (2 in this tiny room), and at
     # most one of them matches an object
     flat = run(root, tmp_path / "m2", lift="merged")["segment"]

@@ -262,6 +262,9 @@ class ClickScene:
                 (``segment``: the segment with the most weight wins).
         """
         seeds = np.asarray(seeds, np.int64)
+        if self.params.selection == "region":
+            raise ValueError("ClickScene selects by features or segment; selection: region grows a 2D region "
+                             "(run_extract, evaluate_clicks)")
         if self.params.selection == "segment":
             seg = self.segments()
             w = np.ones(seeds.size) if seed_weights is None else np.asarray(seed_weights, np.float64)

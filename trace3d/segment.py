@@ -236,8 +236,7 @@ def _find(parent, v):
 @njit(cache=True)
 def _merge_edges(edges, distances, sums, mass, threshold, parent):
     """Edges in the given order (ascending feature distance): join their ends' components when the
-    edge's distance and the distance between the two components' mean features are both at most
-    ``threshold``; the heavier component's root stays (ties: the lower index). ``sums`` [S, D] (weight
+    distance between the two components' mean features is at most ``threshold``; the heavier component's root stays (ties: the lower index). ``sums`` [S, D] (weight
     x feature) and ``mass`` [S] are updated at the roots; ``parent`` [S] is the union-find forest."""
     t2 = threshold * threshold
     dim = sums.shape[1]

@@ -5,7 +5,8 @@ For every evaluated object with a reference view (the training view the query pr
 ground-truth mask there (:func:`~trace3d.lifting.query.deepest_pixel`: the pixel farthest from the
 mask's border). :class:`~trace3d.extract.ClickScene` selects the object's Gaussians from that click
 alone (the rendered feature at the pixel and the Gaussians under it; nothing else of the mask is
-used). The selection is scored at the object's novel-view (NVS) views, the test views that show it
+used; ``selection: region``, the 2D region growing of before, uses the rendered feature map of the
+clicked view). The selection is scored at the object's novel-view (NVS) views, the test views that show it
 with at least ``min_pixels`` pixels: its mask there is where the selected Gaussians hold more of the
 rendered weight than the rest of the scene (:func:`~trace3d.extract.object_mask`, occluders
 included), against the ground-truth mask. An object's click IoU is the mean over its views; the
@@ -32,12 +33,15 @@ def evaluate_clicks(lifted, gt, by_name: dict, params, min_pixels: int, near: fl
             params: :class:`~trace3d.extract.ExtractParams` (``selection``, threshold, graph);
             min_pixels: the protocol's ``min_pixels`` (recorded; the views are the ground truth's NVS views).
     """
-    from ..extract import ClickScene, click_seeds, object_mask
+    import dataclasses
+
+    from ..extract import ClickScene, _select_region, click_seeds, object_mask
     from ..lifting.query import deepest_pixel, iou
 
     start = time.perf_counter()
     model = lifted.model
-    click = ClickScene(model.means.detach().double().numpy(), lifted.features, lifted.visibility(), params)
+    click = ClickScene(model.means.detach().double().numpy(), lifted.features, lifted.visibility(),
+                       dataclasses.replace(params, selection="features") if params.selection == "region" else params)
     objects = []
     for oid in gt.object_ids:
         query = gt.query(oid)
@@ -46,8 +50,12 @@ def evaluate_clicks(lifted, gt, by_name: dict, params, min_pixels: int, near: fl
             continue
         camera = by_name[query.reference]
         x, y = deepest_pixel(query.mask)
-        seeds, weights = click_seeds(lifted.view_weights(camera), x, y)
-        keep = click.select(lifted.feature_map(camera)[y, x], seeds, weights)
+        if params.selection == "region":
+            keep = _select_region(lifted, model, camera, lifted.feature_map(camera), x, y,
+                                  dataclasses.replace(params, view=query.reference))[0]
+        else:
+            seeds, weights = click_seeds(lifted.view_weights(camera), x, y)
+            keep = click.select(lifted.feature_map(camera)[y, x], seeds, weights)
         scores = [iou(object_mask(model, by_name[f], keep, near), gt.mask(oid, f)) for f in views]
         objects.append({"id": oid, "reference": query.reference, "point": [int(x), int(y)],
                         "gaussians": int(keep.sum()), "iou": float(np.mean(scores)),

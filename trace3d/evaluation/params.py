@@ -62,8 +62,10 @@ class EvaluateParams:
     click: click-extract IoU: one click per object at the deepest pixel of its reference mask, the
         object selected by ``trace3d extract``'s ``click_selection``, scored at its NVS views
         (:mod:`trace3d.evaluation.click`), written to ``metrics.json["click"]`` (standard: on; official: off).
-    click_selection: ``features`` (similar features linked in 3D to the click) or ``segment`` (the
-        segment the click falls in); the other settings are :class:`~trace3d.extract.ExtractParams`'.
+    click_selection: ``features`` (similar features linked in 3D to the click), ``segment`` (the
+        segment the click falls in) or ``region`` (the 2D region grown from the click, queried as a
+        reference mask: the extract step before issue 48); the other settings are
+        :class:`~trace3d.extract.ExtractParams`'.
     """
 
     protocol: Literal["standard", "official"] = "standard"
@@ -89,7 +91,7 @@ class EvaluateParams:
     panoptic_seed: int = 0
     segment: bool | None = None
     click: bool | None = None
-    click_selection: Literal["features", "segment"] = "features"
+    click_selection: Literal["features", "segment", "region"] = "features"
 
     def __post_init__(self) -> None:
         for key, value in PROTOCOL_VALUES[self.protocol].items():
