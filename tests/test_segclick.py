@@ -153,3 +153,15 @@ def test_bad_segment_and_extract_params():
         SegmentParams(feature_threshold=-1.0)
     with pytest.raises(ValueError, match="flat_ratio"):
         SegmentParams(flat_ratio=1.5)
+
+
+def test_hdbscan_clusters_split_into_their_pieces_in_3d():
+    """``method: hdbscan_graph``: the feature clusters (box A and its far twin share one) split where they
+    are apart in 3D; the wall and box B stay whole."""
+    means, features, weights, truth = toy_room()
+    seg = segment_gaussians(means, features, weights, SegmentParams(method="hdbscan_graph", samples=2000,
+                                                                     min_share=0.005))
+    for obj in (0, 1, 2, 3):
+        labels = np.unique(seg.instance[truth == obj])
+        assert labels.size == 1 and labels[0] > 0, (obj, labels)
+    assert len({int(seg.instance[truth == obj][0]) for obj in (0, 1, 2, 3)}) == 4
