@@ -165,3 +165,27 @@ def test_hdbscan_clusters_split_into_their_pieces_in_3d():
         labels = np.unique(seg.instance[truth == obj])
         assert labels.size == 1 and labels[0] > 0, (obj, labels)
     assert len({int(seg.instance[truth == obj][0]) for obj in (0, 1, 2, 3)}) == 4
+
+
+def test_click_weights_are_the_full_views_rows():
+    """The 3x3 pixels' weights traced alone equal those rows of the full view's weights (the twin)."""
+    from trace3d.extract import click_seeds, click_weights
+    from trace3d.render.pixel_weights import pixel_weights
+    from trace3d.scene import Camera
+    import torch
+
+    from trace3d.gaussians import init_from_points
+
+    rng = np.random.default_rng(0)
+    points = torch.from_numpy(np.c_[rng.uniform(-1, 1, (300, 2)), rng.uniform(2, 4, 300)]).float()
+    model = init_from_points(points, torch.full((300, 3), 0.5), sh_degree=0, opacity=0.6, seed=0)
+    camera = Camera(name="v", split="train", width=24, height=18,
+                    K=np.array([[20.0, 0, 12], [0, 20.0, 9], [0, 0, 1]]), world_to_camera=np.eye(4))
+    with torch.no_grad():
+        full = pixel_weights(model.splats(), camera)
+    for x, y in ((12, 9), (0, 0), (23, 17)):
+        a = click_seeds(full, x, y)
+        b = click_seeds(click_weights(model, camera, x, y), x, y)
+        np.testing.assert_array_equal(a[0], b[0])
+        np.testing.assert_allclose(a[1], b[1], rtol=1e-6)
+    assert a[0].size > 0

@@ -331,6 +331,17 @@ def select_connected_reference(features: np.ndarray, query: np.ndarray, edges: n
     return out
 
 
+def click_weights(model, camera, x: int, y: int, radius: int = 1, near: float = 0.01):
+    """The :class:`~trace3d.render.pixel_weights.PixelWeights` of the pixels within ``radius`` of (x, y)
+    only (what :func:`click_seeds` reads; a full view's weights cost a trace of every pixel)."""
+    from .render.pixel_weights import pixel_weights
+
+    pixels = [yy * camera.width + xx for yy in range(y - radius, y + radius + 1)
+              for xx in range(x - radius, x + radius + 1) if 0 <= xx < camera.width and 0 <= yy < camera.height]
+    with torch.no_grad():
+        return pixel_weights(model.splats(), camera, np.asarray(pixels, np.int64), near)
+
+
 def click_seeds(weights, x: int, y: int, radius: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """The Gaussians that blend into the pixels within ``radius`` of (x, y) of a view's full
     :class:`~trace3d.render.pixel_weights.PixelWeights`, and their summed blending weight there:
@@ -468,7 +479,7 @@ def run_extract(scene, poses_dir: Path | None, gaussians_dir: Path, lift_dir: Pa
         keep, mask, facts = _select_region(lifted, model, camera, feature_map, x, y, p)
     else:
         click = ClickScene(model.means.detach().double().numpy(), lifted.features, lifted.visibility(), p)
-        seeds, seed_weights = click_seeds(lifted.view_weights(camera), x, y)
+        seeds, seed_weights = click_seeds(click_weights(model, camera, x, y, near=lifted.params.near), x, y)
         keep = click.select(feature_map[y, x], seeds, seed_weights)
         facts = {"threshold": click.threshold, "data_threshold": click.data_threshold, "seeds": int(seeds.size)}
         if p.selection == "segment":

@@ -35,7 +35,7 @@ def evaluate_clicks(lifted, gt, by_name: dict, params, min_pixels: int, near: fl
     """
     import dataclasses
 
-    from ..extract import ClickScene, _select_region, click_seeds, object_mask
+    from ..extract import ClickScene, _select_region, click_seeds, click_weights, object_mask
     from ..lifting.query import deepest_pixel, iou
 
     start = time.perf_counter()
@@ -54,7 +54,7 @@ def evaluate_clicks(lifted, gt, by_name: dict, params, min_pixels: int, near: fl
             keep = _select_region(lifted, model, camera, lifted.feature_map(camera), x, y,
                                   dataclasses.replace(params, view=query.reference))[0]
         else:
-            seeds, weights = click_seeds(lifted.view_weights(camera), x, y)
+            seeds, weights = click_seeds(click_weights(model, camera, x, y, near=near), x, y)
             keep = click.select(lifted.feature_map(camera)[y, x], seeds, weights)
         scores = [iou(object_mask(model, by_name[f], keep, near), gt.mask(oid, f)) for f in views]
         objects.append({"id": oid, "reference": query.reference, "point": [int(x), int(y)],
