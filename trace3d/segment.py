@@ -70,10 +70,14 @@ class SegmentParams:
     Attributes:
         method: ``graph`` (default): the lifted features over the Gaussians' 3D neighbourhood graph
             (module docstring); ``features``: HDBSCAN of the features alone, as the PQ^scene evaluation's
-            ``panoptic`` clusters them (the step before issue 48).
+            ``panoptic`` clusters them (the step before issue 48); ``hdbscan_graph``: those clusters split
+            into their pieces connected in 3D, then the size and stuff steps of ``graph``.
         neighbours: k of the kNN graph over the Gaussians' centres.
-        feature_threshold: two neighbours (and two segments' mean features) closer than this join;
-            ``None``: chosen from the data (Otsu's split of the kNN edges' feature distances, log scale).
+        feature_threshold: two segments join when their mean features are closer than this; ``None``:
+            ``threshold_scale`` times the distance that tells same-object pairs from other-object pairs
+            in this lift (:func:`feature_threshold`).
+        threshold_scale: see ``feature_threshold``.
+        pairs: random pairs of Gaussians drawn for that threshold (with ``seed``).
         min_share: a segment holds at least this share of the summed training blending weight (about
             its share of the training pixels); ``features``: HDBSCAN's minimum cluster size as a share
             of ``samples`` (as ``panoptic_min_share``).
@@ -82,7 +86,8 @@ class SegmentParams:
         flat_ratio, stuff_size: a segment is stuff (a wall, the floor) when its thickness is at most
             ``flat_ratio`` of its second side and both its in-plane sides are at least ``stuff_size`` of
             the scene's longest side.
-        samples, seed: ``features`` only: Gaussians clustered (as ``panoptic_samples``) and their draw's seed.
+        samples: ``features`` and ``hdbscan_graph``: Gaussians clustered (as ``panoptic_samples``).
+        seed: the seed of the random pairs and of the clustered Gaussians' draw.
         min_pixels: ``features`` only: a cluster winning fewer training pixels (over all views together)
             is not an object; ``None``: ``min_share`` of all the training views' pixels (at least 1).
         turntable_views, turntable_size: each object's ``objects/<k>.png`` strip (views, pixels per side).
