@@ -200,3 +200,42 @@ def test_connected_to_seeds_drops_far_pieces():
     np.testing.assert_array_equal(kept, np.arange(len(means)) < len(grid))
     assert connected_to_seeds(means, seeds, link_scale=6.0).all()  # a reach of 6 crosses the gap
     assert not connected_to_seeds(means, np.zeros(len(means), bool), 3.0).any()
+
+
+def test_other_selections_and_the_segment_step(lifted_room, tmp_path):
+    """The same click with ``selection: segment`` and ``region`` (the 2D region growing of before), and
+    ``trace3d segment`` on the room: its objects, stuff (walls, floor) and dropped segments account for
+    every Gaussian, and the clicked object's segment is what ``selection: segment`` returns."""
+    root = lifted_room
+    scene = Scene.read(root / "scene")
+    cam = next(c for c in scene.train_cameras if len(_objects_in_view(scene, c)[0]) >= 2)
+    candidates, objects = _objects_in_view(scene, cam)
+    x, y = deepest_pixel(objects == candidates[0])
+    base = ["extract", "--scene", str(root / "scene"), "--gaussians", str(root / "gaussians"), "--lift",
+            str(root / "lift"), "--view", cam.name, "--point", f"{x},{y}"]
+    got = {}
+    for selection in ("segment", "region"):
+        out = tmp_path / selection
+        assert cli_main(base + ["--out", str(out), "--params",
+                                f"{{selection: {selection}, picture_views: 1, turntable_views: 0}}"]) == 0
+        info = json.loads((out / "extract.json").read_text())
+        assert info["selection"] == selection and info["gaussians"] > 0
+        got[selection] = GaussianModel.read_ply(out / "object.ply")
+        score, views, _ = _render_iou(scene, got[selection], candidates[0])
+        assert views >= 1 and score > 0.6, (selection, score)
+    seg_out = tmp_path / "segment"
+    assert cli_main(["segment", "--scene", str(root / "scene"), "--gaussians", str(root / "gaussians"), "--lift",
+                     str(root / "lift"), "--out", str(seg_out), "--params",
+                     "{turntable_views: 2, turntable_size: 24}"]) == 0
+    info = json.loads((seg_out / "segment.json").read_text())
+    assert info["params"]["method"] == "graph" and info["threshold"] > 0
+    assert len(info["objects"]) >= 2 and len(info["stuff"]) >= 1  # furniture, and walls / floor as stuff
+    total = sum(e["gaussians"] for e in info["objects"] + info["stuff"] + info["dropped"])
+    assert total + info["unclustered_gaussians"] == info["gaussians_total"]
+    for entry in info["objects"]:
+        assert len(GaussianModel.read_ply(seg_out / "objects" / f"{entry['id']}.ply")) == entry["gaussians"]
+    for entry in info["stuff"]:
+        assert len(GaussianModel.read_ply(seg_out / "stuff" / f"{entry['id']}.ply")) == entry["gaussians"]
+    # the segment the click selected is one of the step's objects, Gaussian for Gaussian
+    sizes = {e["gaussians"] for e in info["objects"] + info["stuff"]}
+    assert len(got["segment"]) in sizes

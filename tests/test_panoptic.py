@@ -206,13 +206,29 @@ def test_evaluate_writes_panoptic_and_single_point_beside_the_old_keys(tiny_feat
     assert [o["id"] for o in one["objects"]] == [o["id"] for o in m["objects"]]
     assert one["nvs"]["objects"] == m["nvs"]["objects"] and one["nvs"]["mIoU"] is not None
     # the protocols' old keys do not change when the new ones are switched off (or on)
-    off = run(root, tmp_path / "b", single_point=False, panoptic=False)
-    assert "panoptic" not in off and "single_point" not in off
+    off = run(root, tmp_path / "b", single_point=False, panoptic=False, segment=False, click=False)
+    assert not {"panoptic", "single_point", "segment", "click"} & set(off)
     for key in ("extraction", "nvs", "objects", "skipped", "gaussians"):
         assert json.dumps(off[key]) == json.dumps(m[key])
-    # the official protocol computes neither by default
+    # the segment step's objects (features over the 3D kNN graph) and one click per object find the
+    # objects of the ideal lift too
+    seg, click = m["segment"], m["click"]
+    assert seg["PQ"] > 0.4 and seg["TP"] >= 3 and seg["objects"] == 4 and seg["views"] == 4
+    # (measured: 3 of the 4 objects at IoU 0.52-0.70; at 48x36 the fourth click selects its background too)
+    assert click["objects"] == 4 and click["mIoU"] > 0.4 and click["selection"] == "features"
+    assert sorted(o["iou"] > 0.5 for o in click["per_object"]) == [False, True, True, True]
+    assert all(len(o["point"]) == 2 and o["gaussians"] > 0 for o in click["per_object"])
+    # the 2D region growing of before, scored the same way
+    region = run(root, tmp_path / "r", single_point=False, panoptic=False, segment=False,
+                 click_selection="region")["click"]
+    assert region["selection"] == "region" and region["objects"] == 4 and 0.0 < region["mIoU"] <= 1.0
+    # every feature equal: the segments are the kNN graph's pieces in 3D (2 in this tiny room), and at
+    # most one of them matches an object
+    flat = run(root, tmp_path / "m2", lift="merged")["segment"]
+    assert flat["grown_segments"] <= 2 and flat["segments"] <= 2 and flat["TP"] <= 1
+    # the official protocol computes none of them by default
     official = run(root, tmp_path / "o", protocol="official")
-    assert "panoptic" not in official and "single_point" not in official
+    assert not {"panoptic", "single_point", "segment", "click"} & set(official)
     saved = json.loads((tmp_path / "a" / "metrics.json").read_text())
     assert saved["panoptic"]["PQ"] == pan["PQ"] and saved["single_point"]["nvs"]["mIoU"] == one["nvs"]["mIoU"]
 
@@ -376,8 +392,8 @@ def test_evaluate_metrics_are_those_of_the_all_views_at_once_path(tiny_features,
     def without_seconds(path):
         data = json.loads(path.read_text())
         data.pop("seconds")
-        data["single_point"].pop("seconds")
-        data["panoptic"].pop("seconds")
+        for key in ("single_point", "panoptic", "segment", "click"):
+            data[key].pop("seconds")
         return json.dumps(data, sort_keys=True)
 
     run(tiny_features, tmp_path / "streamed", picture_objects=2)

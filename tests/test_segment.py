@@ -78,8 +78,8 @@ def test_transforms_captures_run_the_whole_dag_to_object_plys(room, tmp_path):
             strip = cv2.imread(str(seg / "objects" / f"{obj['id']}.png"))
             assert strip.shape[:2] == (24, 3 * 24)
             total += obj["gaussians"]
-        assert total + sum(d["gaussians"] for d in info["dropped"]) + info["unclustered_gaussians"] == \
-            info["gaussians_total"]
+        assert total + sum(d["gaussians"] for d in info["dropped"] + info["stuff"]) + info["unclustered_gaussians"] \
+            == info["gaussians_total"]
         assert [o["pixels"] for o in info["objects"]] == sorted((o["pixels"] for o in info["objects"]), reverse=True)
         sheet = cv2.imread(str(tmp_path / "results" / "plots" / "segment" / f"{name}-full.png"))
         assert sheet.shape[0] >= 24 * len(info["objects"])

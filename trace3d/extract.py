@@ -1,34 +1,34 @@
 """One object out by a click: ``trace3d extract --view V --point X,Y`` on a contrastively lifted scene.
 
-No reference mask is needed.  From the clicked pixel of training view V:
+No reference mask is needed. From the clicked pixel of training view V (``selection: features``, the
+default; SAGA-style, then 3D connectivity):
 
-1. render V's feature map F [H, W, D] (the lifted features, :class:`~trace3d.lifting.query.FeatureLifted`)
-   and take the clicked pixel's feature q;
-2. **grow** a region from the click: for thresholds t on an even grid of ``threshold_steps`` values in
-   (0, max ||F - q||], the region R(t) is the 4-connected component of {x : ||F(x) - q|| <= t} that
-   holds the click; the region kept is the most *stable* one (as MSER does for grey levels): the t
-   minimising the relative growth (|R(t + delta)| - |R(t - delta)|) / |R(t)| (delta =
-   ``stability_delta`` grid steps), among regions of at least ``min_region_pixels`` pixels whose grown
-   neighbour R(t + delta) covers less than ``max_region_fraction`` of the view (near-ties, within
-   ``stability_tolerance``, go to the widest run of thresholds).  Contrastive features
-   are nearly constant on an object and jump at its border, so the object is the region that stops
-   growing over the widest range of thresholds;
-3. that region is the reference mask of the paper's query (Sec. 3.5): the query points and their
-   thresholds come from :func:`~trace3d.lifting.query.find_query_points`, the object's masks at the
-   training views from those, and its Gaussians are traced from the masks
-   (:meth:`~trace3d.lifting.query.FeatureLifted.object_gaussians`) — the code the evaluation runs;
-4. an object is one piece: with ``connected`` (default), of the traced Gaussians only those linked in
-   3D (centres closer than ``link_scale`` times the set's median nearest-neighbour distance, chained)
-   to the Gaussians that blend into the clicked pixel (its 3x3 neighbourhood) are kept.  A view where
-   the object is absent can still pass the query's thresholds on another object's pixels, whose
-   Gaussians are then traced too; they are far from the click and are dropped here.
+1. **seeds**: the Gaussians that blend into the clicked pixel and its 8 neighbours (one trace of V);
+   the *query* is the lifted feature of the seed with the most blending weight at the click (the
+   surface clicked on; a rendered feature at an object's border blends two objects');
+2. **similar**: every Gaussian seen in training whose feature lies within the threshold of the query.
+   The threshold comes from the data (:func:`~trace3d.segment.feature_threshold`, times
+   ``threshold_scale``): where the feature distances of neighbours in 3D (mostly one object) and of
+   random pairs on two objects cross, the value ``trace3d segment`` joins segments with;
+3. **connected**: of the similar Gaussians only those linked to a similar seed through edges of the
+   Gaussians' kNN graph (``neighbours`` = 12, by centre) whose both ends are similar: another object
+   with the same feature elsewhere in the scene (a twin never seen beside it) is not taken;
+   Gaussians never seen in training follow their nearest seen neighbour.
+
+``selection: segment`` returns the ``trace3d segment`` object the click falls in (the segment holding
+the most of the seeds' weight); ``selection: region`` is the step before issue 48: a 2D region grown
+from the click in the rendered feature map (the most stable region over thresholds, as MSER), used as
+the reference mask of the paper's query (:func:`~trace3d.lifting.query.find_query_points`, the object's
+Gaussians traced from its masks at the training views) and, with ``connected``, cut to the traced
+Gaussians chained in 3D to those under the click.
 
 Writes into ``out_dir``: ``object.ply`` (the object's Gaussians, the 3DGS/2DGS PLY layout of
 :meth:`~trace3d.gaussians.GaussianModel.write_ply`, which Gaussian-splat viewers open), ``object.png``
-(the clicked view with the click and the object's mask, then the object rendered alone from
-``picture_views`` training views, those that show most of it), ``turntable.png`` (the object alone from ``turntable_views``
-directions around it) and ``extract.json`` (the click, the chosen threshold, the region, the query
-points, the Gaussian count and the settings).
+(the clicked view with the click and the object's mask there: the pixels where its Gaussians hold more
+of the rendered weight than the rest, :func:`object_mask`; then the object rendered alone from
+``picture_views`` training views, those that show most of it), ``turntable.png`` (the object alone from
+``turntable_views`` directions around it) and ``extract.json`` (the click, the selection, the
+threshold, the Gaussian count and the settings). Its click IoU on the rooms: docs/evaluation.md.
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ import json
 import logging
 import time
 from pathlib import Path
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -57,21 +58,38 @@ class ExtractParams:
     Attributes:
         view: the training view clicked on (its frame name).
         point: the clicked pixel (x, y): column and row of the view's image, 0-based (fractions are floored).
-        threshold_steps: thresholds tried when growing the region from the click.
-        stability_delta: grid steps on either side over which a region's growth is measured.
-        stability_tolerance: regions whose relative growth is within this of the most stable one's are
-            near-ties, decided by the widest run of thresholds (0: exact ties only).
-        min_region_pixels: smallest region that counts as an object.
-        max_region_fraction: a region whose grown neighbour covers this fraction of the view is not an object.
-        connected: keep only the traced Gaussians connected in 3D to those under the click (step 4).
-        link_scale: two Gaussians are linked when their centres are closer than this many times the
-            median nearest-neighbour distance of the traced set.
+        selection: ``features`` (default): the Gaussians whose lifted feature lies within ``threshold`` of
+            the clicked pixel's rendered feature, linked in 3D to the Gaussians under the click (module
+            docstring); ``segment``: the ``trace3d segment`` object the click falls in; ``region``: the
+            2D region grown from the click queried as a reference mask (the step before issue 48).
+        threshold: ``features``: the feature distance; ``None``: ``threshold_scale`` times the distance
+            that tells the lift's same-object pairs from other-object pairs
+            (:func:`~trace3d.segment.feature_threshold`).
+        threshold_scale: see ``threshold``.
+        neighbours: k of the kNN graph over the Gaussians' centres (``features``, ``segment``).
+        pairs, seed: the random pairs (and their seed) of that threshold.
+        threshold_steps: ``region``: thresholds tried when growing the region from the click.
+        stability_delta: ``region``: grid steps on either side over which a region's growth is measured.
+        stability_tolerance: ``region``: regions whose relative growth is within this of the most stable
+            one's are near-ties, decided by the widest run of thresholds (0: exact ties only).
+        min_region_pixels: ``region``: smallest region that counts as an object.
+        max_region_fraction: ``region``: a region whose grown neighbour covers this fraction of the view
+            is not an object.
+        connected: ``region``: keep only the traced Gaussians connected in 3D to those under the click.
+        link_scale: ``region``: two Gaussians are linked when their centres are closer than this many
+            times the median nearest-neighbour distance of the traced set.
         picture_views: training views the object is rendered from in ``object.png``.
         turntable_views, turntable_size: the ``turntable.png`` strip (views, pixels per side).
     """
 
     view: str = ""
     point: tuple[float, ...] = ()
+    selection: Literal["features", "segment", "region"] = "features"
+    threshold: float | None = None
+    threshold_scale: float = 1.0
+    neighbours: int = 12
+    pairs: int = 100000
+    seed: int = 0
     threshold_steps: int = 64
     stability_delta: int = 2
     stability_tolerance: float = 0.0
@@ -84,6 +102,11 @@ class ExtractParams:
     turntable_size: int = 128
 
     def __post_init__(self) -> None:
+        if self.threshold is not None and not self.threshold > 0:
+            raise ValueError(f"threshold must be > 0 (or null), got {self.threshold}")
+        if not self.threshold_scale > 0 or self.neighbours < 1 or self.pairs < 2:
+            raise ValueError(f"threshold_scale must be > 0, neighbours >= 1 and pairs >= 2, got "
+                             f"{self.threshold_scale}, {self.neighbours}, {self.pairs}")
         if self.threshold_steps < 4 or not 1 <= self.stability_delta < self.threshold_steps // 2:
             raise ValueError(f"threshold_steps must be >= 4 and stability_delta in [1, threshold_steps / 2), got "
                              f"{self.threshold_steps}, {self.stability_delta}")
@@ -174,6 +197,166 @@ def grow_from_click(feature_map: np.ndarray, x: int, y: int, params: ExtractPara
     return ClickRegion(regions[best], float(thresholds[best]), float(best_score), thresholds, areas)
 
 
+# ----------------------------------------------------------------------------------------------
+# the click's selection in 3D
+# ----------------------------------------------------------------------------------------------
+
+
+class ClickScene:
+    """What every click on one lifted scene shares: the seen Gaussians' kNN graph, the feature
+    threshold (given, or ``threshold_scale`` x :func:`~trace3d.segment.feature_threshold`) and, for
+    ``selection: segment``, the scene's segments (made on first use).
+
+    Args:
+        means: [N, 3] Gaussian centres; features: [N, D] lifted features; weights: [N] summed training
+            blending weights (0 = never seen in training).
+    """
+
+    def __init__(self, means: np.ndarray, features: np.ndarray, weights: np.ndarray, params: ExtractParams):
+        from .segment import feature_threshold, gaussian_graph
+
+        self.means = np.asarray(means, np.float64)
+        self.features = np.asarray(features, np.float64)
+        self.weights = np.asarray(weights, np.float64)
+        self.params = params
+        self.seen = np.flatnonzero(self.weights > 0)
+        self.graph = gaussian_graph(self.means, self.seen, params.neighbours)
+        if params.threshold is not None:
+            self.data_threshold = None
+            self.threshold = float(params.threshold)
+        else:
+            self.data_threshold = feature_threshold(self.features[self.seen], self.weights[self.seen], self.graph.edges,
+                                           params.pairs, params.seed)
+            self.threshold = params.threshold_scale * self.data_threshold
+        self._segments = None
+
+    def segments(self):
+        """The scene's :class:`~trace3d.segment.SceneSegments` with the default segment parameters and
+        this scene's ``neighbours`` (made once)."""
+        from .segment import SegmentParams, segment_gaussians
+
+        if self._segments is None:
+            sp = SegmentParams(neighbours=self.params.neighbours, pairs=self.params.pairs, seed=self.params.seed)
+            self._segments = segment_gaussians(self.means, self.features, self.weights, sp, self.graph)
+        return self._segments
+
+    def _unseen_follow(self, keep_seen: np.ndarray) -> np.ndarray:
+        """[N] bool from the seen Gaussians' choice [S]: an unseen Gaussian follows its nearest seen one."""
+        from scipy.spatial import cKDTree
+
+        keep = np.zeros(len(self.means), bool)
+        keep[self.seen] = keep_seen
+        unseen = np.flatnonzero(self.weights <= 0)
+        if unseen.size and self.seen.size:
+            _, nearest = cKDTree(self.means[self.seen]).query(self.means[unseen], k=1)
+            keep[unseen] = keep_seen[nearest]
+        return keep
+
+    def select(self, query: np.ndarray, seeds: np.ndarray, seed_weights: np.ndarray | None = None) -> np.ndarray:
+        """[N] bool: the clicked object.
+
+        Args:
+            query: [D] the rendered feature at the clicked pixel (used when ``seed_weights`` is None).
+            seeds: [K] indices of the Gaussians that blend into the clicked pixel; seed_weights: [K] their
+                blending weights there: the query is then the feature of the Gaussian with the most weight
+                (``segment``: the segment with the most weight wins).
+        """
+        seeds = np.asarray(seeds, np.int64)
+        if self.params.selection == "region":
+            raise ValueError("ClickScene selects by features or segment; selection: region grows a 2D region "
+                             "(run_extract, evaluate_clicks)")
+        if self.params.selection == "segment":
+            seg = self.segments()
+            w = np.ones(seeds.size) if seed_weights is None else np.asarray(seed_weights, np.float64)
+            labels = seg.instance[seeds]
+            hit = labels > 0
+            if not hit.any():
+                return np.zeros(len(self.means), bool)
+            votes = np.bincount(labels[hit], weights=w[hit], minlength=seg.count + 1)
+            return seg.instance == int(np.argmax(votes))
+        query = np.asarray(query, np.float64)
+        if seed_weights is not None and seeds.size:
+            # the feature of the surface clicked on: the Gaussian with the most weight there (a rendered
+            # feature at an object's border blends two objects' features)
+            query = self.features[seeds[int(np.argmax(seed_weights))]]
+        inside = np.isin(seeds, self.seen)
+        return self._unseen_follow(select_connected(self.features[self.seen], query, self.graph.edges,
+                                                    np.searchsorted(self.seen, seeds[inside]), self.threshold))
+
+
+def select_connected(features: np.ndarray, query: np.ndarray, edges: np.ndarray, seeds: np.ndarray,
+                     threshold: float) -> np.ndarray:
+    """[S] bool: the points whose feature lies within ``threshold`` of ``query`` and that are linked to a
+    seed through edges between such points.
+
+    Args:
+        features: [S, D]; query: [D]; edges: [E, 2] point pairs (the kNN graph); seeds: [K] point indices
+            (the Gaussians under the click; seeds outside the threshold start nothing).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    count = len(features)
+    similar = np.sqrt(((features - query[None, :]) ** 2).sum(1)) <= threshold
+    seeds = np.asarray(seeds, np.int64)
+    seeds = seeds[similar[seeds]] if seeds.size else seeds
+    if not seeds.size:
+        return np.zeros(count, bool)
+    both = similar[edges[:, 0]] & similar[edges[:, 1]] if len(edges) else np.zeros(0, bool)
+    graph = coo_matrix((np.ones(int(both.sum())), (edges[both, 0], edges[both, 1])), shape=(count, count))
+    _, labels = connected_components(graph, directed=False)
+    return similar & np.isin(labels, np.unique(labels[seeds]))
+
+
+def select_connected_reference(features: np.ndarray, query: np.ndarray, edges: np.ndarray, seeds: np.ndarray,
+                               threshold: float) -> np.ndarray:
+    """:func:`select_connected` by a breadth-first walk from the seeds (the twin)."""
+    count = len(features)
+    similar = [float(np.sqrt(((features[i] - query) ** 2).sum())) <= threshold for i in range(count)]
+    nbrs: list[list[int]] = [[] for _ in range(count)]
+    for a, b in np.asarray(edges).tolist():
+        if similar[a] and similar[b]:
+            nbrs[a].append(b)
+            nbrs[b].append(a)
+    out = np.zeros(count, bool)
+    stack = [int(s) for s in seeds if similar[int(s)]]
+    for s in stack:
+        out[s] = True
+    while stack:
+        v = stack.pop()
+        for u in nbrs[v]:
+            if not out[u]:
+                out[u] = True
+                stack.append(u)
+    return out
+
+
+def click_weights(model, camera, x: int, y: int, radius: int = 1, near: float = 0.01):
+    """The :class:`~trace3d.render.pixel_weights.PixelWeights` of the pixels within ``radius`` of (x, y)
+    only (what :func:`click_seeds` reads; a full view's weights cost a trace of every pixel)."""
+    from .render.pixel_weights import pixel_weights
+
+    pixels = [yy * camera.width + xx for yy in range(y - radius, y + radius + 1)
+              for xx in range(x - radius, x + radius + 1) if 0 <= xx < camera.width and 0 <= yy < camera.height]
+    with torch.no_grad():
+        return pixel_weights(model.splats(), camera, np.asarray(pixels, np.int64), near)
+
+
+def click_seeds(weights, x: int, y: int, radius: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """The Gaussians that blend into the pixels within ``radius`` of (x, y) of a view's full
+    :class:`~trace3d.render.pixel_weights.PixelWeights`, and their summed blending weight there:
+    indices [K] (ascending), weights [K]."""
+    wanted = [yy * weights.width + xx for yy in range(y - radius, y + radius + 1)
+              for xx in range(x - radius, x + radius + 1) if 0 <= xx < weights.width and 0 <= yy < weights.height]
+    rows = np.flatnonzero(np.isin(weights.pixels, wanted))
+    if not rows.size:
+        return np.zeros(0, np.int64), np.zeros(0)
+    idx = np.concatenate([weights.indices[weights.indptr[r]: weights.indptr[r + 1]] for r in rows]).astype(np.int64)
+    val = np.concatenate([weights.weights[weights.indptr[r]: weights.indptr[r + 1]] for r in rows]).astype(np.float64)
+    ids, inverse = np.unique(idx, return_inverse=True)
+    return ids, np.bincount(inverse, weights=val, minlength=ids.size)
+
+
 def connected_to_seeds(means: np.ndarray, seeds: np.ndarray, link_scale: float) -> np.ndarray:
     """[K] bool: the points of ``means`` [K, 3] chained to any of ``seeds`` [K] bool by links shorter than
     ``link_scale`` times the median nearest-neighbour distance."""
@@ -223,12 +406,48 @@ def _tile(images: list[np.ndarray], height: int) -> np.ndarray:
     return np.concatenate(tiles[:-1], axis=1)
 
 
+def object_mask(model, camera, keep: np.ndarray, near: float = 0.01) -> np.ndarray:
+    """[H, W] bool: the pixels of ``camera`` where the Gaussians ``keep`` [N] bool hold more of the
+    rendered blending weight than the others (occluders included)."""
+    from .evaluation.panoptic import instance_map
+
+    return instance_map(model, camera, np.where(keep, 1, 2).astype(np.int64), 2, near) == 1
+
+
+def _select_region(lifted, model, camera, feature_map: np.ndarray, x: int, y: int, p: ExtractParams):
+    """``selection: region``: the 2D region grown from the click queried as a reference mask, then (with
+    ``connected``) the traced Gaussians linked in 3D to those under the click. Returns keep [N] bool, the
+    query's mask at the clicked view and the facts for extract.json."""
+    from .lifting import ObjectQuery
+
+    region = grow_from_click(feature_map, x, y, p)
+    query = ObjectQuery(p.view, region.mask)
+    points = lifted.query_points(query)
+    keep = np.asarray(lifted.object_gaussians(query), bool).copy()
+    traced = int(keep.sum())
+    if p.connected and keep.any():
+        under = _gaussians_at(lifted.view_weights(camera), x, y)
+        seeds = np.zeros(len(model), bool)
+        seeds[under] = True
+        seeds &= keep
+        if seeds.any():
+            kept = np.flatnonzero(keep)
+            linked = connected_to_seeds(model.means.detach().double().numpy()[kept], seeds[kept], p.link_scale)
+            keep[kept[~linked]] = False
+        else:
+            log.warning("extract: none of the traced Gaussians blends into the clicked pixel; all %d are kept", traced)
+    facts = {"threshold": region.threshold, "stability": region.stability, "region_pixels": int(region.mask.sum()),
+             "query_points": points.pixels.tolist(), "query_thresholds": points.thresholds.tolist(),
+             "reference_iou": float(points.ious[-1]) if len(points.ious) else None, "gaussians_traced": traced}
+    return keep, points.mask(feature_map), facts
+
+
 def run_extract(scene, poses_dir: Path | None, gaussians_dir: Path, lift_dir: Path, out_dir: Path,
                 params: dict) -> dict:
     """Extract the clicked object of a contrastive lift into ``out_dir``; returns extract.json's content."""
     from .evaluation.extraction import render_alone
     from .evaluation.pictures import overlay, world_up, write_turntable
-    from .lifting import ObjectQuery, load_lifted
+    from .lifting import load_lifted
     from .lifting.query import FeatureLifted
     from .scene import write_rgb
     from .tracing.git import load_fitted
@@ -252,33 +471,32 @@ def run_extract(scene, poses_dir: Path | None, gaussians_dir: Path, lift_dir: Pa
         raise ConfigError(f"extract: view {p.view!r} is not a training view of {scene.root} ({shown}).")
     camera = by_name[p.view]
     x, y = int(np.floor(p.point[0])), int(np.floor(p.point[1]))
+    if not (0 <= x < camera.width and 0 <= y < camera.height):
+        raise ConfigError(f"extract: the point ({x}, {y}) lies outside the {camera.width}x{camera.height} view.")
     feature_map = lifted.feature_map(camera)
-    region = grow_from_click(feature_map, x, y, p)
-    query = ObjectQuery(p.view, region.mask)
-    points = lifted.query_points(query)
-    keep = np.asarray(lifted.object_gaussians(query), bool).copy()
-    traced = int(keep.sum())
-    if p.connected and keep.any():
-        under = _gaussians_at(lifted.view_weights(camera), x, y)
-        seeds = np.zeros(len(model), bool)
-        seeds[under] = True
-        seeds &= keep
-        if seeds.any():
-            kept = np.flatnonzero(keep)
-            linked = connected_to_seeds(model.means.detach().double().numpy()[kept], seeds[kept], p.link_scale)
-            keep[kept[~linked]] = False
-        else:
-            log.warning("extract: none of the traced Gaussians blends into the clicked pixel; all %d are kept", traced)
+    facts: dict = {}
+    if p.selection == "region":
+        keep, mask, facts = _select_region(lifted, model, camera, feature_map, x, y, p)
+    else:
+        click = ClickScene(model.means.detach().double().numpy(), lifted.features, lifted.visibility(), p)
+        seeds, seed_weights = click_seeds(click_weights(model, camera, x, y, near=lifted.params.near), x, y)
+        keep = click.select(feature_map[y, x], seeds, seed_weights)
+        facts = {"threshold": click.threshold, "data_threshold": click.data_threshold, "seeds": int(seeds.size)}
+        if p.selection == "segment":
+            seg = click.segments()
+            label = int(np.bincount(seg.instance[keep]).argmax()) if keep.any() else 0
+            facts["segment"] = {"id": label, "stuff": bool(seg.stuff[label - 1]) if label else None,
+                                "threshold": seg.threshold}
+        mask = object_mask(model, camera, keep)
     if not keep.any():
-        raise Trace3DError(f"extract: the region grown from ({x}, {y}) on {p.view} selects no Gaussian (a region of "
-                           f"{int(region.mask.sum())} pixels); click inside an object.")
+        raise Trace3DError(f"extract: the click ({x}, {y}) on {p.view} selects no Gaussian ({p.selection} selection); "
+                           "click inside an object.")
     obj = model.subset(torch.from_numpy(keep))
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     obj.write_ply(out_dir / "object.ply")
     # the picture: the clicked view with the click and the object's mask there, then the object alone
     image = scene.image(p.view)
-    mask = points.mask(feature_map)
     panels = [_mark_click(image, x, y),
               _mark_click((overlay(image.astype(np.float32) / 255.0, mask) * 255 + 0.5).astype(np.uint8), x, y)]
     # the training views that show the most of the object alone, the clicked view first
@@ -294,15 +512,12 @@ def run_extract(scene, poses_dir: Path | None, gaussians_dir: Path, lift_dir: Pa
     if p.turntable_views:
         write_turntable(out_dir / "turntable.png", obj, world_up(train), p.turntable_views, p.turntable_size)
     info = {
-        "view": p.view, "point": [x, y], "threshold": region.threshold, "stability": region.stability,
-        "region_pixels": int(region.mask.sum()), "mask_pixels": int(mask.sum()),
-        "query_points": points.pixels.tolist(), "query_thresholds": points.thresholds.tolist(),
-        "reference_iou": float(points.ious[-1]) if len(points.ious) else None,
-        "gaussians": int(keep.sum()), "gaussians_traced": traced, "gaussians_total": int(len(model)),
+        "view": p.view, "point": [x, y], "selection": p.selection, **facts, "mask_pixels": int(mask.sum()),
+        "gaussians": int(keep.sum()), "gaussians_total": int(len(model)),
         "picture_views": list(renders), "params": to_dict(p), "lift": str(Path(lift_dir)),
         "seconds": time.perf_counter() - start,
     }
     write_json(out_dir / "extract.json", info)
-    log.info("extract: (%d, %d) on %s -> a %d-pixel region (threshold %.3g), %d of %d Gaussians -> %s", x, y, p.view,
-             info["region_pixels"], region.threshold, info["gaussians"], len(model), out_dir / "object.ply")
+    log.info("extract: (%d, %d) on %s, %s selection -> %d of %d Gaussians, a %d-pixel mask there -> %s", x, y, p.view,
+             p.selection, info["gaussians"], len(model), info["mask_pixels"], out_dir / "object.ply")
     return info

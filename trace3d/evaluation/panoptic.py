@@ -388,6 +388,28 @@ def scene_truth(instances: np.ndarray, evaluated: dict[int, np.ndarray]) -> np.n
     return out
 
 
+def _scene_score(model, instance: np.ndarray, count: int, gt, frames: Sequence[str], cameras: dict, near: float,
+                 min_pixels: int) -> tuple[PanopticScore, dict]:
+    """PQ^scene of the per-Gaussian ``instance`` [N] (1..count, 0 = none) over the views ``frames``;
+    evaluated objects with fewer than ``min_pixels`` pixels over all the views together are void.
+    Returns the score and the counts for metrics.json."""
+    preds, truths = [], []
+    for f in frames:
+        preds.append(instance_map(model, cameras[f], instance, count, near).ravel())
+        truths.append(scene_truth(gt.instances(f), gt.members).ravel())
+    pred = np.concatenate(preds) if preds else np.zeros(0, np.int64)
+    truth = np.concatenate(truths) if truths else np.zeros(0, np.int64)
+    ids, area = np.unique(truth[truth > 0], return_counts=True)
+    small = ids[area < min_pixels]
+    truth[np.isin(truth, small)] = 0
+    score = panoptic_quality(pred, truth)
+    present = np.unique(pred[pred > 0])
+    facts = {"instances_in_views": int(present.size), "objects": int(ids.size - small.size),
+             "void_objects": [int(i) for i in small], "views": len(frames), "pixels": int(pred.size),
+             "void_pixels": int((truth == 0).sum())}
+    return score, facts
+
+
 def evaluate_panoptic(lifted, gt, frames: Sequence[str], cameras: dict, samples: int, min_share: float,
                       seed: int, min_pixels: int) -> dict:
     """PQ^scene of a feature-lifted scene over the views ``frames`` (module docstring).
@@ -400,26 +422,37 @@ def evaluate_panoptic(lifted, gt, frames: Sequence[str], cameras: dict, samples:
     start = time.perf_counter()
     weights = lifted.visibility()
     clusters = cluster_features(lifted.features, weights, samples, min_share, seed)
-    preds, truths = [], []
-    for f in frames:
-        preds.append(instance_map(lifted.model, cameras[f], clusters.instance, clusters.count,
-                                  lifted.params.near).ravel())
-        truths.append(scene_truth(gt.instances(f), gt.members).ravel())
-    pred = np.concatenate(preds) if preds else np.zeros(0, np.int64)
-    truth = np.concatenate(truths) if truths else np.zeros(0, np.int64)
-    ids, area = np.unique(truth[truth > 0], return_counts=True)
-    small = ids[area < min_pixels]
-    truth[np.isin(truth, small)] = 0
-    score = panoptic_quality(pred, truth)
-    present = np.unique(pred[pred > 0])
-    out = {**score.to_json(), "clusters": clusters.count, "instances_in_views": int(present.size),
-           "objects": int(ids.size - small.size), "void_objects": [int(i) for i in small],
-           "views": len(frames), "pixels": int(pred.size), "void_pixels": int((truth == 0).sum()),
+    score, facts = _scene_score(lifted.model, clusters.instance, clusters.count, gt, frames, cameras,
+                                lifted.params.near, min_pixels)
+    out = {**score.to_json(), "clusters": clusters.count, "instances_in_views": facts["instances_in_views"],
+           "objects": facts["objects"], "void_objects": facts["void_objects"],
+           "views": len(frames), "pixels": facts["pixels"], "void_pixels": facts["void_pixels"],
            "samples": clusters.samples, "noise_samples": clusters.noise,
            "min_cluster_size": clusters.min_cluster_size, "seconds": time.perf_counter() - start}
     log.info("panoptic: %d clusters from %d samples (%d noise), PQ %s SQ %s RQ %s mIoU %s over %d objects, "
              "%d views, %.2f s", clusters.count, clusters.samples, clusters.noise, _fmt(score.pq), _fmt(score.sq),
              _fmt(score.rq), _fmt(score.miou), out["objects"], len(frames), out["seconds"])
+    return out
+
+
+def evaluate_segments(lifted, gt, frames: Sequence[str], cameras: dict, segment_params, min_pixels: int) -> dict:
+    """PQ^scene of the ``trace3d segment`` objects (:func:`~trace3d.segment.segment_gaussians`: the lifted
+    features over the Gaussians' 3D kNN graph; stuff segments count as instances like the others, and
+    on the rooms they lie on void walls and floors) over the views ``frames``; as :func:`evaluate_panoptic`
+    otherwise."""
+    from ..segment import segment_gaussians
+
+    start = time.perf_counter()
+    seg = segment_gaussians(lifted.model.means.detach().double().numpy(), lifted.features, lifted.visibility(),
+                            segment_params)
+    score, facts = _scene_score(lifted.model, seg.instance, seg.count, gt, frames, cameras, lifted.params.near,
+                                min_pixels)
+    out = {**score.to_json(), "segments": seg.count, "stuff": int(seg.stuff.sum()), "threshold": seg.threshold,
+           "threshold_source": seg.threshold_source, **facts, **seg.stats,
+           "seconds": time.perf_counter() - start}
+    log.info("segment PQ^scene: %d segments (%d stuff, threshold %.3g), PQ %s SQ %s RQ %s mIoU %s over %d objects, "
+             "%.2f s", seg.count, int(seg.stuff.sum()), seg.threshold, _fmt(score.pq), _fmt(score.sq), _fmt(score.rq),
+             _fmt(score.miou), facts["objects"], out["seconds"])
     return out
 
 

@@ -10,9 +10,10 @@ PROTOCOLS = ("standard", "official")
 # what each protocol fills in for the settings left at None
 PROTOCOL_VALUES = {
     "standard": {"views": "test", "min_pixels": 50, "skip_occluded_nvs": False, "reference": "largest_unoccluded",
-                 "accuracy": "accuracy", "single_point": True, "panoptic": True},
+                 "accuracy": "accuracy", "single_point": True, "panoptic": True, "segment": True, "click": True},
     "official": {"views": "all", "min_pixels": 200, "skip_occluded_nvs": True, "reference": "largest",
-                 "accuracy": "precision", "single_point": False, "panoptic": False},
+                 "accuracy": "precision", "single_point": False, "panoptic": False, "segment": False,
+                 "click": False},
 }
 
 
@@ -55,6 +56,16 @@ class EvaluateParams:
         min_samples = ceil(samples * share) = 8; 0.001 = 19 px of a 160x120 view on average; chosen on
         exact object labels only, docs/evaluation.md).
     panoptic_seed: seed of the pixel draw.
+    segment: PQ^scene of the ``trace3d segment`` objects (the lifted features over the Gaussians' 3D
+        kNN graph, default :class:`~trace3d.segment.SegmentParams`; no ground truth until the score),
+        written to ``metrics.json["segment"]`` (standard: on; official: off).
+    click: click-extract IoU: one click per object at the deepest pixel of its reference mask, the
+        object selected by ``trace3d extract``'s ``click_selection``, scored at its NVS views
+        (:mod:`trace3d.evaluation.click`), written to ``metrics.json["click"]`` (standard: on; official: off).
+    click_selection: ``features`` (similar features linked in 3D to the click), ``segment`` (the
+        segment the click falls in) or ``region`` (the 2D region grown from the click, queried as a
+        reference mask: the extract step before issue 48); the other settings are
+        :class:`~trace3d.extract.ExtractParams`'.
     """
 
     protocol: Literal["standard", "official"] = "standard"
@@ -78,6 +89,9 @@ class EvaluateParams:
     panoptic_samples: int = 8000
     panoptic_min_share: float = 0.001
     panoptic_seed: int = 0
+    segment: bool | None = None
+    click: bool | None = None
+    click_selection: Literal["features", "segment", "region"] = "features"
 
     # each field's range: refused on input and in the config schema (trace3d.params.check_ranges)
     RANGES = {"panoptic_samples": ">= 2", "panoptic_min_share": "(0, 1)", "min_pixels": ">= 1",

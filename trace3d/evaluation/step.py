@@ -184,6 +184,12 @@ def run_evaluate(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Path, l
     if p.panoptic:
         with ph("panoptic"):
             extra["panoptic"] = _panoptic(lifted, lift_info, gt, cameras, by_name, p)
+    if p.segment:
+        with ph("segment"):
+            extra["segment"] = _segment(lifted, lift_info, gt, cameras, by_name, p)
+    if p.click:
+        with ph("click"):
+            extra["click"] = _click(lifted, lift_info, gt, by_name, p)
     with ph("pictures"):
         rows = []
         for i in _picture_choice(objects, p.picture_objects):
@@ -331,6 +337,27 @@ def _panoptic(lifted, lift_info: dict, gt: GroundTruth, cameras: list, by_name: 
     frames = [c.name for c in cameras if p.views == "all" or c.split == "test"]
     return evaluate_panoptic(lifted, gt, frames, by_name, p.panoptic_samples, p.panoptic_min_share,
                              p.panoptic_seed, p.min_pixels)
+
+
+def _segment(lifted, lift_info: dict, gt: GroundTruth, cameras: list, by_name: dict, p: EvaluateParams) -> dict:
+    """PQ^scene of the segment step's objects (default parameters) over the protocol's views."""
+    from ..segment import SegmentParams
+    from .panoptic import evaluate_segments
+
+    if not (hasattr(lifted, "features") and hasattr(lifted, "visibility")):
+        return {"skipped": f"lifting method {lift_info.get('method', '?')!r} has no lifted features"}
+    frames = [c.name for c in cameras if p.views == "all" or c.split == "test"]
+    return evaluate_segments(lifted, gt, frames, by_name, SegmentParams(near=p.near), p.min_pixels)
+
+
+def _click(lifted, lift_info: dict, gt: GroundTruth, by_name: dict, p: EvaluateParams) -> dict:
+    """Click-extract IoU (one click per object, :mod:`.click`)."""
+    from ..extract import ExtractParams
+    from .click import evaluate_clicks
+
+    if not (hasattr(lifted, "features") and hasattr(lifted, "feature_map")):
+        return {"skipped": f"lifting method {lift_info.get('method', '?')!r} has no lifted features"}
+    return evaluate_clicks(lifted, gt, by_name, ExtractParams(selection=p.click_selection), p.min_pixels, p.near)
 
 
 def _fmt(value: float | None, digits: int = 3) -> str:

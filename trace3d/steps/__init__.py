@@ -205,7 +205,7 @@ STEPS: tuple[Step, ...] = (
           arg("--view", help="the training view clicked on (frame name)"),
           arg("--point", metavar="X,Y", help="the clicked pixel: column,row of the view's image (0-based)"),
           arg("--out", required=True, help="output folder: object.ply, object.png, turntable.png, extract.json"),
-          params_arg("view, point: [x, y], threshold_steps, ...; the flags win")),
+          params_arg("view, point: [x, y], selection: features | segment | region, threshold, ...; the flags win")),
          ("trace3d.extract:run_extract",)),
     Step("segment", "the objects a contrastive lift separates, without ground truth: per-object PLYs, "
                     "turntable renders and a contact sheet",
@@ -213,7 +213,7 @@ STEPS: tuple[Step, ...] = (
           arg("--lift", required=True, help="contrastive lift folder (features.npy, lift.json)"),
           arg("--out", required=True, help="output folder: objects/<k>.ply, objects/<k>.png, contact_sheet.png, "
                                            "segment.json"),
-          params_arg("samples, min_share, seed, min_gaussians, min_pixels, ...")),
+          params_arg("method: graph | hdbscan_graph | features, neighbours, threshold_scale, min_share, min_size, ...")),
          ("trace3d.segment:run_segment",), {"segment": ("trace3d.segment:SegmentParams",)}, rules=("segment",)),
     Step("summary", "write the per-scene summary table (results/scenes.md)",
          (arg("scenes", nargs="+", help="scene folders"), arg("--out", required=True)),

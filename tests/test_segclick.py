@@ -1,0 +1,191 @@
+"""Objects without ground truth from a lifted scene (issue 48): ``segment``'s graph partition and
+``extract``'s click selection on toy scenes whose answer is known, and their kernels against their twins."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from trace3d.extract import ClickScene, ExtractParams, select_connected, select_connected_reference
+from trace3d.segment import (SegmentParams, _find, _merge_edges, _merge_edges_reference, feature_threshold,
+                             gaussian_graph, segment_gaussians)
+
+
+def _box(rng, centre, size, count):
+    """``count`` points filling an axis-aligned box."""
+    return np.asarray(centre) + (rng.random((count, 3)) - 0.5) * np.asarray(size)
+
+
+def toy_room(seed=0):
+    """A wall (4 x 2.5 m, 1 cm thick) with two boxes standing against it, each with its own feature, a
+    third box 2 m away from them with box A's feature, and a 6-point speck on box B with a feature of
+    its own. Features: one point per object in 8-D (10 apart), plus noise of 0.5 per channel.
+    Returns means [N, 3], features [N, 8], weights [N] and the true object of every point (0 wall,
+    1 box A, 2 box B, 3 the far twin of A, 4 the speck)."""
+    rng = np.random.default_rng(seed)
+    parts = [_box(rng, (0, 0, 1.25), (4.0, 0.01, 2.5), 3000),
+             _box(rng, (-1.0, 0.3, 0.3), (0.6, 0.6, 0.6), 800),
+             _box(rng, (0.6, 0.3, 0.3), (0.6, 0.6, 0.6), 800),
+             _box(rng, (-1.0, 2.6, 0.3), (0.6, 0.6, 0.6), 800),
+             _box(rng, (0.6, 0.3, 0.62), (0.05, 0.05, 0.02), 6)]
+    truth = np.concatenate([np.full(len(p), k) for k, p in enumerate(parts)])
+    centres = np.zeros((5, 8))
+    centres[0, 0], centres[1, 1], centres[2, 2], centres[4, 3] = 10.0, 10.0, 10.0, 10.0
+    centres[3] = centres[1]
+    features = centres[truth] + rng.normal(0, 0.5, (len(truth), 8))
+    weights = rng.uniform(0.5, 1.5, len(truth))
+    return np.concatenate(parts), features, weights, truth
+
+
+def test_segment_finds_the_objects_and_the_wall():
+    means, features, weights, truth = toy_room()
+    seg = segment_gaussians(means, features, weights, SegmentParams())
+    # every true object is one segment (the speck, under the minimum size, joined box B under it)
+    for obj in (0, 1, 2, 3):
+        labels = np.unique(seg.instance[truth == obj])
+        assert labels.size == 1 and labels[0] > 0, (obj, labels)
+    assert len({int(seg.instance[truth == obj][0]) for obj in (0, 1, 2, 3)}) == 4  # A and its far twin apart
+    assert set(np.unique(seg.instance[truth == 4]).tolist()) == {int(seg.instance[truth == 2][0])}
+    assert seg.count == 4
+    wall = int(seg.instance[truth == 0][0])
+    assert seg.stuff.tolist() == [k == wall for k in range(1, 5)]  # the wall is stuff, the boxes are not
+    # the threshold lies between the two modes: objects 10 * sqrt(2) apart, noise 0.5 * sqrt(2 * 8) = 2
+    assert 2.0 < seg.threshold < 14.0, seg.threshold
+    # unseen Gaussians follow their nearest seen neighbour (points inside box A, away from the wall)
+    unseen = weights.copy()
+    hidden = np.flatnonzero((truth == 1) & (means[:, 1] > 0.3))[:10]
+    unseen[hidden] = 0.0
+    seg2 = segment_gaussians(means, features, unseen, SegmentParams())
+    assert (seg2.instance[hidden] == seg2.instance[np.flatnonzero(truth == 1)[-1]]).all()
+
+
+def test_click_selects_the_object_under_it_and_not_its_far_twin():
+    means, features, weights, truth = toy_room()
+    click = ClickScene(means, features, weights, ExtractParams())
+    on_a = np.flatnonzero(truth == 1)[:5]
+    keep = click.select(features[truth == 1].mean(0), on_a)
+    np.testing.assert_array_equal(keep, truth == 1)  # the whole box A, not its twin with the same feature
+    on_wall = np.flatnonzero(truth == 0)[:5]
+    np.testing.assert_array_equal(click.select(features[truth == 0].mean(0), on_wall), truth == 0)
+    # the click's feature far from every seed's: nothing
+    assert not click.select(np.full(8, 100.0), on_a).any()
+    # selection: segment returns the segment the seeds' weight falls in
+    seg_click = ClickScene(means, features, weights, ExtractParams(selection="segment"))
+    np.testing.assert_array_equal(seg_click.select(features[on_a[0]], on_a, np.ones(on_a.size)),
+                                  seg_click.segments().instance == seg_click.segments().instance[on_a[0]])
+
+
+def test_threshold_tells_same_object_pairs_from_others():
+    """Objects as point clouds in 3D, each with its own feature point: the data's threshold lies above
+    almost every neighbour pair on one object and below almost every pair on two."""
+    rng = np.random.default_rng(1)
+    for spread, gap in ((0.3, 5.0), (1.0, 20.0)):
+        count = 12
+        label = np.repeat(np.arange(count), 400)
+        means = rng.random((label.size, 3)) * 0.5 + 3.0 * label[:, None]  # objects 3 apart in a row
+        centres = rng.normal(0, gap, (count, 6))
+        feats = centres[label] + rng.normal(0, spread, (label.size, 6))
+        graph = gaussian_graph(means, np.arange(label.size), 8)
+        t = feature_threshold(feats, np.ones(label.size), graph.edges, 50000, 0)
+        i, j = rng.integers(0, label.size, (2, 20000))
+        d = np.linalg.norm(feats[i] - feats[j], axis=1)
+        assert np.mean(d[label[i] == label[j]] > t) < 0.02 and np.mean(d[label[i] != label[j]] <= t) < 0.05, t
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_merge_kernel_matches_its_twin(seed):
+    rng = np.random.default_rng(seed)
+    n, dim = 400, 5
+    means = rng.random((n, 3))
+    feats = rng.normal(0, 1, (n, dim)) + 4.0 * (means[:, :1] > 0.5)
+    w = rng.uniform(0.1, 2.0, n)
+    w[:7] = 1.0  # equal masses: the tie rule decides the root
+    graph = gaussian_graph(means, np.arange(n), 6)
+    d = np.sqrt(((feats[graph.edges[:, 0]] - feats[graph.edges[:, 1]]) ** 2).sum(1))
+    order = np.lexsort((graph.edges[:, 1], graph.edges[:, 0], d))
+    results = []
+    for fn in (_merge_edges, _merge_edges_reference):
+        parent = np.arange(n, dtype=np.int64)
+        sums, mass = feats * w[:, None], w.copy()
+        fn(np.ascontiguousarray(graph.edges[order]), np.ascontiguousarray(d[order]), sums, mass, 2.0, parent)
+        roots = np.array([_find(parent.copy(), v) for v in range(n)])
+        results.append((roots, sums[np.unique(roots)], mass[np.unique(roots)]))
+    np.testing.assert_array_equal(results[0][0], results[1][0])
+    np.testing.assert_array_equal(results[0][1], results[1][1])
+    np.testing.assert_array_equal(results[0][2], results[1][2])
+    assert 1 < np.unique(results[0][0]).size < n  # some joined, not all
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_select_connected_matches_its_twin(seed):
+    rng = np.random.default_rng(seed)
+    n = 600
+    means = rng.random((n, 3))
+    feats = rng.normal(0, 1, (n, 4))
+    graph = gaussian_graph(means, np.arange(n), 5)
+    seeds = rng.choice(n, 4, replace=False)
+    for threshold in (1.5, 2.5, 4.0):
+        fast = select_connected(feats, feats[seeds[0]], graph.edges, seeds, threshold)
+        slow = select_connected_reference(feats, feats[seeds[0]], graph.edges, seeds, threshold)
+        np.testing.assert_array_equal(fast, slow)
+    assert fast.sum() > 1
+
+
+def test_graph_lists_each_pair_once():
+    rng = np.random.default_rng(3)
+    means = rng.random((50, 3))
+    g = gaussian_graph(means, np.arange(50), 4)
+    assert (g.edges[:, 0] < g.edges[:, 1]).all()
+    assert len(np.unique(g.edges, axis=0)) == len(g.edges)
+    np.testing.assert_allclose(g.lengths, np.linalg.norm(means[g.edges[:, 0]] - means[g.edges[:, 1]], axis=1))
+    # every point's nearest neighbour is linked to it
+    from scipy.spatial import cKDTree
+
+    nearest = cKDTree(means).query(means, k=2)[1][:, 1]
+    pairs = {tuple(e) for e in g.edges.tolist()}
+    assert all((min(i, j), max(i, j)) in pairs for i, j in enumerate(nearest.tolist()))
+
+
+def test_bad_segment_and_extract_params():
+    with pytest.raises(ValueError, match="threshold_scale"):
+        ExtractParams(threshold_scale=0)
+    with pytest.raises(ValueError, match="feature_threshold"):
+        SegmentParams(feature_threshold=-1.0)
+    with pytest.raises(ValueError, match="flat_ratio"):
+        SegmentParams(flat_ratio=1.5)
+
+
+def test_hdbscan_clusters_split_into_their_pieces_in_3d():
+    """``method: hdbscan_graph``: the feature clusters (box A and its far twin share one) split where they
+    are apart in 3D; the wall and box B stay whole."""
+    means, features, weights, truth = toy_room()
+    seg = segment_gaussians(means, features, weights, SegmentParams(method="hdbscan_graph", samples=2000,
+                                                                     min_share=0.005))
+    for obj in (0, 1, 2, 3):
+        labels = np.unique(seg.instance[truth == obj])
+        assert labels.size == 1 and labels[0] > 0, (obj, labels)
+    assert len({int(seg.instance[truth == obj][0]) for obj in (0, 1, 2, 3)}) == 4
+
+
+def test_click_weights_are_the_full_views_rows():
+    """The 3x3 pixels' weights traced alone equal those rows of the full view's weights (the twin)."""
+    from trace3d.extract import click_seeds, click_weights
+    from trace3d.render.pixel_weights import pixel_weights
+    from trace3d.scene import Camera
+    import torch
+
+    from trace3d.gaussians import init_from_points
+
+    rng = np.random.default_rng(0)
+    points = torch.from_numpy(np.c_[rng.uniform(-1, 1, (300, 2)), rng.uniform(2, 4, 300)]).float()
+    model = init_from_points(points, torch.full((300, 3), 0.5), sh_degree=0, opacity=0.6, seed=0)
+    camera = Camera(name="v", split="train", width=24, height=18,
+                    K=np.array([[20.0, 0, 12], [0, 20.0, 9], [0, 0, 1]]), world_to_camera=np.eye(4))
+    with torch.no_grad():
+        full = pixel_weights(model.splats(), camera)
+    for x, y in ((12, 9), (0, 0), (23, 17)):
+        a = click_seeds(full, x, y)
+        b = click_seeds(click_weights(model, camera, x, y), x, y)
+        np.testing.assert_array_equal(a[0], b[0])
+        np.testing.assert_allclose(a[1], b[1], rtol=1e-6)
+    assert a[0].size > 0
