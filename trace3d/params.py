@@ -164,7 +164,7 @@ def to_dict(params: Any) -> dict:
 
 DECLARED_RANGES: dict[str, dict[str, str]] = {
     "trace3d.tracing.merge:MergeParams": {
-        "threshold": "[0, 1]", "association_share": "(0, 1)", "min_view_share": "[0, 1)",
+        "threshold": "[0, 1]", "association_share": "(0, 1)", "min_view_share": "[0, 1)", "mask_weight": "[0, 1]",
         "min_gaussians": ">= 0", "min_views": ">= 0", "min_gaussian_views": ">= 0"},
     "trace3d.segment:SegmentParams": {
         "samples": ">= 2", "min_share": "(0, 1)", "seed": ">= 0", "min_gaussians": ">= 1", "min_pixels": ">= 1",

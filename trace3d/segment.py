@@ -241,8 +241,8 @@ def _find(parent, v):
 @njit(cache=True)
 def _merge_edges(edges, distances, sums, mass, threshold, parent):
     """Edges in the given order (ascending feature distance): join their ends' components when the
-    distance between the two components' mean features is at most ``threshold``; the heavier component's root stays (ties: the lower index). ``sums`` [S, D] (weight
-    x feature) and ``mass`` [S] are updated at the roots; ``parent`` [S] is the union-find forest."""
+    distance between the two components' mean features is at most ``threshold``; the heavier component's
+    root stays (ties: the lower index). ``sums`` [S, D] (weight x feature) and ``mass`` [S] are updated at the roots; ``parent`` [S] is the union-find forest."""
     t2 = threshold * threshold
     dim = sums.shape[1]
     for e in range(edges.shape[0]):
@@ -357,7 +357,8 @@ def segment_gaussians(means: np.ndarray, features: np.ndarray, weights: np.ndarr
         threshold, source = float(params.feature_threshold), "params"
     else:
         base = feature_threshold(f, w, edges, params.pairs, params.seed)
-        threshold, source = params.threshold_scale * base, f"{params.threshold_scale:g} x the equal-error distance {base:.4g}"
+        threshold = params.threshold_scale * base
+        source = f"{params.threshold_scale:g} x the equal-error distance {base:.4g}"
     if params.method == "graph":
         # 1. grow segments along the kNN edges, in order of feature distance (ties by the edge's ends)
         grow = np.lexsort((edges[:, 1], edges[:, 0], fdist))

@@ -213,7 +213,8 @@ STEPS: tuple[Step, ...] = (
           arg("--lift", required=True, help="contrastive lift folder (features.npy, lift.json)"),
           arg("--out", required=True, help="output folder: objects/<k>.ply, objects/<k>.png, contact_sheet.png, "
                                            "segment.json"),
-          params_arg("method: graph | hdbscan_graph | features, neighbours, threshold_scale, min_share, min_size, ...")),
+          params_arg("method: graph | hdbscan_graph | features, neighbours, threshold_scale, min_share, "
+                     "min_size, ...")),
          ("trace3d.segment:run_segment",), {"segment": ("trace3d.segment:SegmentParams",)}, rules=("segment",)),
     Step("summary", "write the per-scene summary table (results/scenes.md)",
          (arg("scenes", nargs="+", help="scene folders"), arg("--out", required=True)),
