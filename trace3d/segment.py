@@ -242,7 +242,8 @@ def _find(parent, v):
 def _merge_edges(edges, distances, sums, mass, threshold, parent):
     """Edges in the given order (ascending feature distance): join their ends' components when the
     distance between the two components' mean features is at most ``threshold``; the heavier component's
-    root stays (ties: the lower index). ``sums`` [S, D] (weight x feature) and ``mass`` [S] are updated at the roots; ``parent`` [S] is the union-find forest."""
+    root stays (ties: the lower index). ``sums`` [S, D] (weight x feature) and ``mass`` [S] are updated at
+    the roots; ``parent`` [S] is the union-find forest."""
     t2 = threshold * threshold
     dim = sums.shape[1]
     for e in range(edges.shape[0]):
