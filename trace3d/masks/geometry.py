@@ -1,0 +1,434 @@
+"""The ``geometry`` mask source: nested masks from the fitted scene's depth and normals plus colour.
+
+Reads no ground truth. After the 2DGS fit, every view (train and test) is rendered from the fitted
+Gaussians in the cameras they were fitted with (the poses folder's): median depth ``D`` [H, W] and
+normal ``n`` [H, W, 3] (camera space, facing the camera), beside the view's photo. Then, per view:
+
+1. **Pixel pairs.** Each 4-neighbour pair (p, q) gets, from the back-projected points ``X`` and the
+   normals: the *plane residuals* ``r_pq = n_p . (X_q - X_p) / (D_p f)`` and ``r_qp`` (how far q lies
+   off p's tangent plane, in pixel footprints, ``f`` = 1 / focal length): near 0 on any plane
+   whatever its slant, large across a depth discontinuity; the pair is a **depth edge** when
+   ``max(|r_pq|, |r_qp|) > depth_edge`` or either pixel is empty (alpha < ``min_alpha``). The
+   **crease** angle between the two normals, and its sign: **concave** when
+   ``(n_q - n_p) . (X_q - X_p) < 0`` (a floor meeting a chair leg, a wall meeting the floor),
+   convex otherwise (the edge of a box). The colour difference (CIELAB).
+2. **Superpixels.** Felzenszwalb's graph segmentation of the photo at a fine scale
+   (``superpixel_scale``), cut further along depth edges and creases sharper than ``crease_cut``
+   (connected components of the 4-neighbour graph without those pairs).
+3. **Agglomeration.** The region adjacency graph of the superpixels is merged greedily, cheapest
+   pair first, with the cost of joining regions A and B::
+
+       cost = colour_weight * |Lab(A) - Lab(B)| / 10           (mean colours)
+            + depth_weight * share of the shared border that is a depth edge
+            + concave_weight * mean concave crease angle on the border / (pi / 4)
+            + convex_weight * mean convex crease angle on the border / (pi / 4)
+
+   multiplied by ``sqrt(min(|A|, |B|) / small_area)`` when the smaller region is under
+   ``small_area`` (small fragments join their best neighbour early, as in Felzenszwalb's rule).
+   Depth edges separate objects from what stands behind them; concave creases from what they stand
+   on; colour splits surfaces. Level ``k`` of the hierarchy is the partition when the next merge
+   would cost more than ``thresholds[k]`` (>= 3 increasing values, finest first), so the coarse
+   regions are unions of the fine ones by construction.
+4. **Masks.** Every region of every level, as :func:`trace3d.masks.graph.nested_masks` emits them
+   (area within [``min_area``, ``max_area``] of the image, a region equal to its single finer region
+   emitted once, empty pixels never in a mask). Any two masks of a view are disjoint or nested.
+   Scores are 1.
+
+Sizes are fractions of the image and ``superpixel_scale`` / ``sigma`` scale with the image as the
+``graph`` source's (``reference_pixels``). Frames without a pose in the poses folder (SfM did not
+register them) get no masks. Deterministic: no random choice.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import heapq
+import logging
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+from tqdm import tqdm
+
+from ..errors import Trace3DError
+from ..scene import Camera, Scene
+from .graph import REFERENCE_PIXELS, nested_masks
+
+log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass
+class GeometryParams:
+    """Parameters of the ``geometry`` mask source (module docstring).
+
+    Attributes:
+        thresholds: merge-cost levels of the hierarchy, finest first (>= 3, strictly increasing).
+        superpixel_scale: Felzenszwalb ``scale`` of the colour over-segmentation at ``reference_pixels``.
+        sigma: Felzenszwalb pre-smoothing width (pixels at ``reference_pixels``).
+        depth_edge: plane residual (pixel footprints) above which a pixel pair is a depth edge.
+        crease_cut: crease angle (degrees) above which a pixel pair cuts a superpixel.
+        colour_weight: weight of the mean-colour difference in the merge cost.
+        depth_weight: weight of the border's share of depth edges in the merge cost.
+        concave_weight: weight of the border's mean concave crease angle in the merge cost.
+        convex_weight: weight of the border's mean convex crease angle in the merge cost.
+        small_area: fraction of the image under which a region's merge cost is discounted.
+        min_area: regions covering less than this fraction of the image give no mask.
+        max_area: regions covering more than this fraction of the image give no mask.
+        min_alpha: pixels whose rendered opacity is below this are empty (no surface).
+        normal_smooth: half-width (pixels) of the box filter applied to the rendered normals (0: none).
+        crease_reach: a pair's crease angle compares the normals this many pixels beyond either pixel
+            (a crease blurred over a few pixels still shows its full angle).
+        near: near plane of the renders (camera z).
+        reference_pixels: the image size (pixels) at which ``superpixel_scale`` and ``sigma`` apply.
+    """
+
+    thresholds: list[float] = dataclasses.field(default_factory=lambda: [0.5, 1.0, 2.0, 4.0])
+    superpixel_scale: float = 60.0
+    sigma: float = 0.5
+    depth_edge: float = 3.0
+    crease_cut: float = 40.0
+    colour_weight: float = 1.0
+    depth_weight: float = 8.0
+    concave_weight: float = 3.0
+    convex_weight: float = 0.5
+    small_area: float = 0.002
+    min_area: float = 0.003
+    max_area: float = 0.9
+    min_alpha: float = 0.5
+    normal_smooth: int = 0
+    crease_reach: int = 1
+    near: float = 0.01
+    reference_pixels: int = REFERENCE_PIXELS
+
+    def __post_init__(self) -> None:
+        self.thresholds = [float(t) for t in self.thresholds]
+        if len(self.thresholds) < 3:
+            raise ValueError(f"thresholds needs at least 3 values (finest first), got {self.thresholds}")
+        if any(t <= 0 for t in self.thresholds) or any(b <= a for a, b in zip(self.thresholds, self.thresholds[1:])):
+            raise ValueError(f"thresholds must be positive and strictly increasing, got {self.thresholds}")
+        for name in ("superpixel_scale", "depth_edge", "crease_cut", "near"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("sigma", "colour_weight", "depth_weight", "concave_weight", "convex_weight", "normal_smooth", "crease_reach"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("small_area", "min_area", "min_alpha"):
+            if not 0.0 <= getattr(self, name) < 1.0:
+                raise ValueError(f"{name} must be in [0, 1), got {getattr(self, name)}")
+        if not self.min_area < self.max_area <= 1.0:
+            raise ValueError(f"max_area must be in (min_area, 1], got {self.max_area}")
+        if self.reference_pixels < 1:
+            raise ValueError(f"reference_pixels must be >= 1, got {self.reference_pixels}")
+
+
+# ----------------------------------------------------------------------------------------------
+# Rendering the fitted geometry
+# ----------------------------------------------------------------------------------------------
+
+
+def render_geometry(model, camera: Camera, near: float = 0.01) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Median depth [H, W], unit camera-space normals [H, W, 3] and alpha [H, W] of ``model`` in ``camera``
+    (float64; depth 0 and normal 0 where nothing was hit)."""
+    import torch
+
+    from ..render import render
+
+    with torch.no_grad():
+        zeros = torch.zeros(len(model), 1, dtype=model.means.dtype)
+        out = render(model.splats(), camera, zeros, near=near)
+    depth = out.median_depth.double().numpy()
+    normal = out.normal.double().numpy()
+    length = np.linalg.norm(normal, axis=2, keepdims=True)
+    normal = np.where(length > 1e-8, normal / np.maximum(length, 1e-12), 0.0)
+    return depth, normal, out.alpha.double().numpy()
+
+
+def back_project(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Camera-space points [H, W, 3] of the pixel centres at ``depth`` [H, W] (z = depth)."""
+    H, W = depth.shape
+    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    x = (u - K[0, 2] - K[0, 1] * (v - K[1, 2]) / K[1, 1]) / K[0, 0]
+    y = (v - K[1, 2]) / K[1, 1]
+    return np.stack([x * depth, y * depth, depth], axis=2)
+
+
+# ----------------------------------------------------------------------------------------------
+# Pixel pairs
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class PixelPairs:
+    """The 4-neighbour pairs of an H x W image (horizontal ones first), flat pixel indices and cues.
+
+    a, b: [E] int64 flat indices; depth_edge: [E] bool; crease: [E] float64 angle (radians);
+    concave: [E] bool; colour: [E] float64 CIELAB distance.
+    """
+
+    a: np.ndarray
+    b: np.ndarray
+    depth_edge: np.ndarray
+    crease: np.ndarray
+    concave: np.ndarray
+    colour: np.ndarray
+
+
+def pixel_pairs(lab: np.ndarray, depth: np.ndarray, normal: np.ndarray, alpha: np.ndarray, K: np.ndarray,
+                params: GeometryParams) -> PixelPairs:
+    """The cues of every 4-neighbour pixel pair (module docstring, step 1).
+
+    Args:
+        lab: [H, W, 3] CIELAB image; depth: [H, W]; normal: [H, W, 3] unit (0 where empty);
+        alpha: [H, W]; K: [3, 3] intrinsics.
+    """
+    H, W = depth.shape
+    if params.normal_smooth > 0:
+        from scipy import ndimage
+
+        size = 2 * params.normal_smooth + 1
+        smooth = np.stack([ndimage.uniform_filter(normal[..., i], size=size, mode="nearest") for i in range(3)], 2)
+        length = np.linalg.norm(smooth, axis=2, keepdims=True)
+        normal = np.where(length > 1e-8, smooth / np.maximum(length, 1e-12), 0.0)
+    points = back_project(depth, K)
+    empty = (alpha < params.min_alpha) | (depth <= 0)
+    footprint = np.maximum(depth, 1e-12) / K[0, 0]
+    index = np.arange(H * W).reshape(H, W)
+    reach = params.crease_reach
+    pieces = {k: [] for k in ("a", "b", "depth_edge", "crease", "concave", "colour")}
+    for axis in (1, 0):  # horizontal pairs (x, x + 1), then vertical ones
+        size = (W, H)[1 - axis]
+        lo, hi = np.arange(size - 1), np.arange(1, size)
+        far_lo, far_hi = np.maximum(lo - reach, 0), np.minimum(hi + reach, size - 1)
+
+        def take(a, i):
+            return np.take(a, i, axis=axis)
+
+        d = take(points, hi) - take(points, lo)
+        n_p, n_q = take(normal, lo), take(normal, hi)
+        r_pq = np.einsum("...i,...i", n_p, d) / take(footprint, lo)
+        r_qp = -np.einsum("...i,...i", n_q, d) / take(footprint, hi)
+        jump = (np.maximum(np.abs(r_pq), np.abs(r_qp)) > params.depth_edge) | take(empty, lo) | take(empty, hi)
+        # creases from the normals `reach` pixels off on either side (a crease blurred over a few pixels)
+        m_p, m_q = take(normal, far_lo), take(normal, far_hi)
+        cos = np.clip(np.einsum("...i,...i", m_p, m_q), -1.0, 1.0)
+        concave = np.einsum("...i,...i", m_q - m_p, take(points, far_hi) - take(points, far_lo)) < 0
+        pieces["a"].append(take(index, lo).ravel())
+        pieces["b"].append(take(index, hi).ravel())
+        pieces["depth_edge"].append(jump.ravel())
+        pieces["crease"].append(np.arccos(cos).ravel())
+        pieces["concave"].append(concave.ravel())
+        pieces["colour"].append(np.linalg.norm(take(lab, hi) - take(lab, lo), axis=-1).ravel())
+    return PixelPairs(**{k: np.concatenate(v) for k, v in pieces.items()})
+
+
+# ----------------------------------------------------------------------------------------------
+# Superpixels and agglomeration
+# ----------------------------------------------------------------------------------------------
+
+
+def superpixels(image: np.ndarray, pairs: PixelPairs, empty: np.ndarray, params: GeometryParams) -> np.ndarray:
+    """[H, W] int32 labels 0..n-1: Felzenszwalb's colour regions cut along depth edges and sharp creases;
+    empty pixels form regions of their own (module docstring, step 2)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from skimage.segmentation import felzenszwalb
+
+    H, W = empty.shape
+    factor = H * W / params.reference_pixels
+    colour = felzenszwalb(image, scale=params.superpixel_scale * factor, sigma=params.sigma * float(np.sqrt(factor)),
+                          min_size=max(1, int(round(0.0005 * H * W))), channel_axis=-1).ravel()
+    flat_empty = empty.ravel()
+    keep = (colour[pairs.a] == colour[pairs.b]) & (flat_empty[pairs.a] == flat_empty[pairs.b])
+    keep &= ~pairs.depth_edge | (flat_empty[pairs.a] & flat_empty[pairs.b])
+    keep &= pairs.crease <= np.deg2rad(params.crease_cut)
+    graph = coo_matrix((np.ones(int(keep.sum()), np.int8), (pairs.a[keep], pairs.b[keep])), shape=(H * W, H * W))
+    _, labels = connected_components(graph, directed=False)
+    return _consecutive_first(labels).reshape(H, W)
+
+
+def _consecutive_first(labels: np.ndarray) -> np.ndarray:
+    """Relabel [P] labels 0..n-1 in order of first appearance (raster order): deterministic."""
+    _, first, inverse = np.unique(labels, return_index=True, return_inverse=True)
+    order = np.argsort(np.argsort(first, kind="stable"), kind="stable")
+    return order[inverse].astype(np.int32)
+
+
+@dataclasses.dataclass
+class _Border:
+    """Sums over the pixel pairs on the border of two regions."""
+
+    pairs: float
+    depth: float
+    concave: float
+    convex: float
+
+
+def region_graph(labels: np.ndarray, lab: np.ndarray, pairs: PixelPairs, empty: np.ndarray):
+    """The region adjacency graph of ``labels`` [H, W] (n regions).
+
+    Returns:
+        area [n], colour sums [n, 3] (CIELAB), empty [n] bool (regions of empty pixels), and the
+        borders {(i, j): _Border} for i < j.
+    """
+    flat = labels.ravel()
+    n = int(flat.max()) + 1
+    area = np.bincount(flat, minlength=n).astype(np.float64)
+    colour = np.stack([np.bincount(flat, weights=lab[..., c].ravel(), minlength=n) for c in range(3)], 1)
+    region_empty = np.bincount(flat, weights=empty.ravel().astype(np.float64), minlength=n) > 0.5 * area
+    la, lb = flat[pairs.a], flat[pairs.b]
+    cross = la != lb
+    lo, hi = np.minimum(la, lb)[cross], np.maximum(la, lb)[cross]
+    key = lo.astype(np.int64) * n + hi
+    uniq, inverse = np.unique(key, return_inverse=True)
+    crease = pairs.crease[cross]
+    concave = pairs.concave[cross]
+    sums = [np.bincount(inverse, weights=w, minlength=len(uniq)) for w in (
+        np.ones(len(key)), pairs.depth_edge[cross].astype(np.float64), np.where(concave, crease, 0.0),
+        np.where(concave, 0.0, crease))]
+    borders = {(int(k // n), int(k % n)): _Border(*(float(s[i]) for s in sums)) for i, k in enumerate(uniq)}
+    return area, colour, region_empty, borders
+
+
+def merge_cost(area_a: float, area_b: float, colour_a: np.ndarray, colour_b: np.ndarray, border: _Border,
+               params: GeometryParams, small_pixels: float) -> float:
+    """The cost of joining two regions (module docstring, step 3); colours are CIELAB means."""
+    quarter = np.pi / 4
+    cost = (params.colour_weight * float(np.linalg.norm(colour_a - colour_b)) / 10.0
+            + params.depth_weight * border.depth / border.pairs
+            + params.concave_weight * border.concave / border.pairs / quarter
+            + params.convex_weight * border.convex / border.pairs / quarter)
+    smaller = min(area_a, area_b)
+    if small_pixels > 0 and smaller < small_pixels:
+        cost *= float(np.sqrt(smaller / small_pixels))
+    return cost
+
+
+def agglomerate(labels: np.ndarray, lab: np.ndarray, pairs: PixelPairs, empty: np.ndarray,
+                params: GeometryParams) -> np.ndarray:
+    """Greedy merging of the regions ``labels`` [H, W], cheapest first; the partition before the first merge
+    costing more than each threshold (module docstring, step 3).
+
+    Returns:
+        [K, H, W] int32 nested label maps, finest first (K = len(thresholds)).
+    """
+    H, W = labels.shape
+    area, colour_sum, region_empty, borders = region_graph(labels, lab, pairs, empty)
+    n = len(area)
+    small_pixels = params.small_area * H * W
+    parent = np.arange(n)
+    version = np.zeros(n, np.int64)
+    neighbours: dict[int, dict[int, _Border]] = {i: {} for i in range(n)}
+    for (i, j), border in borders.items():
+        if region_empty[i] or region_empty[j]:
+            continue  # empty regions never merge
+        neighbours[i][j] = border
+        neighbours[j][i] = border
+
+    def cost(i: int, j: int) -> float:
+        return merge_cost(area[i], area[j], colour_sum[i] / area[i], colour_sum[j] / area[j], neighbours[i][j],
+                          params, small_pixels)
+
+    heap = [(cost(i, j), i, j, 0, 0) for (i, j) in borders if j in neighbours[i]]
+    heapq.heapify(heap)
+    levels = []
+
+    def snapshot() -> np.ndarray:
+        root = parent.copy()
+        while True:
+            nxt = root[root]
+            if np.array_equal(nxt, root):
+                break
+            root = nxt
+        return root[labels].astype(np.int32)
+
+    for threshold in params.thresholds:
+        while heap and heap[0][0] <= threshold:
+            c, i, j, vi, vj = heapq.heappop(heap)
+            if parent[i] != i or parent[j] != j or version[i] != vi or version[j] != vj:
+                continue  # stale: one side has merged or changed since
+            # j joins i (the lower index stays the root: deterministic)
+            a, b = (i, j) if i < j else (j, i)
+            parent[b] = a
+            area[a] += area[b]
+            colour_sum[a] += colour_sum[b]
+            version[a] += 1
+            del neighbours[a][b]
+            for c_, border in neighbours.pop(b).items():
+                if c_ == a:
+                    continue
+                del neighbours[c_][b]
+                old = neighbours[a].get(c_)
+                merged = border if old is None else _Border(old.pairs + border.pairs, old.depth + border.depth,
+                                                            old.concave + border.concave, old.convex + border.convex)
+                neighbours[a][c_] = merged
+                neighbours[c_][a] = merged
+            for c_ in sorted(neighbours[a]):
+                lo, hi = (a, c_) if a < c_ else (c_, a)
+                heapq.heappush(heap, (cost(lo, hi), lo, hi, int(version[lo]), int(version[hi])))
+        levels.append(snapshot())
+    return np.stack(levels)
+
+
+# ----------------------------------------------------------------------------------------------
+# One view, and the source
+# ----------------------------------------------------------------------------------------------
+
+
+def geometry_hierarchy(image: np.ndarray, depth: np.ndarray, normal: np.ndarray, alpha: np.ndarray, K: np.ndarray,
+                       params: GeometryParams) -> tuple[np.ndarray, np.ndarray]:
+    """The nested hierarchy of one view.
+
+    Args:
+        image: [H, W, 3] uint8 RGB; depth: [H, W] median depth; normal: [H, W, 3] unit camera-space
+        normals; alpha: [H, W]; K: [3, 3].
+    Returns:
+        [K, H, W] int32 nested label maps (finest first) and [H, W] bool empty pixels.
+    """
+    from skimage.color import rgb2lab
+
+    image = np.asarray(image)
+    if image.ndim != 3 or image.shape[2] != 3 or image.shape[:2] != depth.shape:
+        raise Trace3DError(f"geometry masks: the image has shape {image.shape}, the render {depth.shape}.")
+    lab = rgb2lab(image)
+    pairs = pixel_pairs(lab, depth, normal, alpha, K, params)
+    empty = (alpha < params.min_alpha) | (depth <= 0)
+    labels = superpixels(image, pairs, empty, params)
+    return agglomerate(labels, lab, pairs, empty, params), empty
+
+
+def geometry_view_masks(image: np.ndarray, depth: np.ndarray, normal: np.ndarray, alpha: np.ndarray, K: np.ndarray,
+                        params: GeometryParams) -> tuple[np.ndarray, np.ndarray]:
+    """One view's masks [M, H, W] bool and scores [M] float32 (all 1); see :func:`geometry_hierarchy`."""
+    hierarchy, empty = geometry_hierarchy(image, depth, normal, alpha, K, params)
+    H, W = depth.shape
+    masks, _ = nested_masks(hierarchy, max(1, int(np.ceil(params.min_area * H * W))),
+                            int(np.floor(params.max_area * H * W)), exclude=empty)
+    return masks, np.ones(len(masks), np.float32)
+
+
+def iter_geometry_masks(scene: Scene, params: GeometryParams, gaussians_dir: Path | None,
+                        poses_dir: Path | None) -> Iterator[tuple[str, np.ndarray, np.ndarray]]:
+    """Yield (frame name, masks [M, H, W] bool, scores [M] float32) for every frame, from the fitted scene."""
+    if gaussians_dir is None:
+        raise Trace3DError("the geometry mask source renders the fitted scene: give `trace3d masks` the 2DGS fit "
+                           "with --gaussians (and the poses folder it was fitted with, --poses).")
+    from ..gaussians import GaussianModel
+    from ..scene import require_known_poses
+    from ..training import read_pose_cameras
+
+    if poses_dir is None:
+        require_known_poses(scene, "trace3d masks --source geometry")
+    model = GaussianModel.read_ply(Path(gaussians_dir) / "point_cloud.ply")
+    cameras = read_pose_cameras(Path(poses_dir), scene) if poses_dir is not None else list(scene.cameras)
+    by_name = {cam.name: cam for cam in cameras}
+    log.info("geometry masks: %d Gaussians, depth edges > %.1f footprints, concave creases, colour; levels %s",
+             len(model), params.depth_edge, params.thresholds)
+    for scene_cam in tqdm(scene.cameras, desc="geometry masks", unit="view", mininterval=5.0):
+        cam = by_name.get(scene_cam.name)
+        if cam is None:
+            log.warning("geometry masks: frame %s has no pose in the fit; it gets no masks", scene_cam.name)
+            yield scene_cam.name, np.zeros((0, scene_cam.height, scene_cam.width), bool), np.zeros(0, np.float32)
+            continue
+        depth, normal, alpha = render_geometry(model, cam, params.near)
+        masks, scores = geometry_view_masks(scene.image(cam.name), depth, normal, alpha, cam.K, params)
+        yield cam.name, masks, scores
