@@ -13,8 +13,8 @@ normal ``n`` [H, W, 3] (camera space, facing the camera), beside the view's phot
    ``(n_q - n_p) . (X_q - X_p) < 0`` (a floor meeting a chair leg, a wall meeting the floor),
    convex otherwise (the edge of a box). The colour difference (CIELAB).
 2. **Superpixels.** Felzenszwalb's graph segmentation of the photo at a fine scale
-   (``superpixel_scale``), cut further along depth edges and creases sharper than ``crease_cut``
-   (connected components of the 4-neighbour graph without those pairs).
+   (``superpixel_scale``), cut further along depth edges and where neighbouring normals differ by more
+   than ``crease_cut`` (connected components of the 4-neighbour graph without those pairs).
 3. **Agglomeration.** The region adjacency graph of the superpixels is merged greedily, cheapest
    pair first, with the cost of joining regions A and B::
 
@@ -66,7 +66,7 @@ class GeometryParams:
         superpixel_scale: Felzenszwalb ``scale`` of the colour over-segmentation at ``reference_pixels``.
         sigma: Felzenszwalb pre-smoothing width (pixels at ``reference_pixels``).
         depth_edge: plane residual (pixel footprints) above which a pixel pair is a depth edge.
-        crease_cut: crease angle (degrees) above which a pixel pair cuts a superpixel.
+        crease_cut: angle (degrees) between a pixel pair's own normals above which the pair cuts a superpixel.
         colour_weight: weight of the mean-colour difference in the merge cost.
         depth_weight: weight of the border's share of depth edges in the merge cost.
         concave_weight: weight of the border's mean concave crease angle in the merge cost.
@@ -86,7 +86,7 @@ class GeometryParams:
     superpixel_scale: float = 60.0
     sigma: float = 0.5
     depth_edge: float = 3.0
-    crease_cut: float = 40.0
+    crease_cut: float = 30.0
     colour_weight: float = 1.0
     depth_weight: float = 8.0
     concave_weight: float = 3.0
@@ -161,14 +161,16 @@ def back_project(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
 class PixelPairs:
     """The 4-neighbour pairs of an H x W image (horizontal ones first), flat pixel indices and cues.
 
-    a, b: [E] int64 flat indices; depth_edge: [E] bool; crease: [E] float64 angle (radians);
-    concave: [E] bool; colour: [E] float64 CIELAB distance.
+    a, b: [E] int64 flat indices; depth_edge: [E] bool; crease: [E] float64 angle (radians) between the
+    normals ``crease_reach`` pixels beyond either pixel; crease_near: [E] the angle between the pair's own
+    normals; concave: [E] bool; colour: [E] float64 CIELAB distance.
     """
 
     a: np.ndarray
     b: np.ndarray
     depth_edge: np.ndarray
     crease: np.ndarray
+    crease_near: np.ndarray
     concave: np.ndarray
     colour: np.ndarray
 
@@ -194,7 +196,7 @@ def pixel_pairs(lab: np.ndarray, depth: np.ndarray, normal: np.ndarray, alpha: n
     footprint = np.maximum(depth, 1e-12) / K[0, 0]
     index = np.arange(H * W).reshape(H, W)
     reach = params.crease_reach
-    pieces = {k: [] for k in ("a", "b", "depth_edge", "crease", "concave", "colour")}
+    pieces = {k: [] for k in ("a", "b", "depth_edge", "crease", "crease_near", "concave", "colour")}
     for axis in (1, 0):  # horizontal pairs (x, x + 1), then vertical ones
         size = (W, H)[1 - axis]
         lo, hi = np.arange(size - 1), np.arange(1, size)
@@ -216,9 +218,46 @@ def pixel_pairs(lab: np.ndarray, depth: np.ndarray, normal: np.ndarray, alpha: n
         pieces["b"].append(take(index, hi).ravel())
         pieces["depth_edge"].append(jump.ravel())
         pieces["crease"].append(np.arccos(cos).ravel())
+        pieces["crease_near"].append(np.arccos(np.clip(np.einsum("...i,...i", n_p, n_q), -1.0, 1.0)).ravel())
         pieces["concave"].append(concave.ravel())
         pieces["colour"].append(np.linalg.norm(take(lab, hi) - take(lab, lo), axis=-1).ravel())
     return PixelPairs(**{k: np.concatenate(v) for k, v in pieces.items()})
+
+
+def _pixel_pairs_reference(lab: np.ndarray, depth: np.ndarray, normal: np.ndarray, alpha: np.ndarray, K: np.ndarray,
+                           params: GeometryParams) -> PixelPairs:
+    """Loop twin of :func:`pixel_pairs` (one pair at a time; ``normal_smooth`` 0 only; used by the tests)."""
+    if params.normal_smooth:
+        raise ValueError("the reference twin takes normal_smooth 0")
+    H, W = depth.shape
+    reach = params.crease_reach
+    out = {k: [] for k in ("a", "b", "depth_edge", "crease", "crease_near", "concave", "colour")}
+
+    def point(y, x):
+        u, v = x + 0.5, y + 0.5
+        return np.linalg.solve(K, np.array([u, v, 1.0])) * depth[y, x]
+
+    def empty(y, x):
+        return alpha[y, x] < params.min_alpha or depth[y, x] <= 0
+
+    for dy, dx in ((0, 1), (1, 0)):
+        for y in range(H - dy):
+            for x in range(W - dx):
+                q = (y + dy, x + dx)
+                far_p = (max(y - reach * dy, 0), max(x - reach * dx, 0))
+                far_q = (min(q[0] + reach * dy, H - 1), min(q[1] + reach * dx, W - 1))
+                d = point(*q) - point(y, x)
+                r_pq = normal[y, x] @ d / (max(depth[y, x], 1e-12) / K[0, 0])
+                r_qp = -(normal[q] @ d) / (max(depth[q], 1e-12) / K[0, 0])
+                out["a"].append(y * W + x)
+                out["b"].append(q[0] * W + q[1])
+                out["depth_edge"].append(max(abs(r_pq), abs(r_qp)) > params.depth_edge or empty(y, x) or empty(*q))
+                m_p, m_q = normal[far_p], normal[far_q]
+                out["crease"].append(float(np.arccos(np.clip(m_p @ m_q, -1.0, 1.0))))
+                out["crease_near"].append(float(np.arccos(np.clip(normal[y, x] @ normal[q], -1.0, 1.0))))
+                out["concave"].append(bool((m_q - m_p) @ (point(*far_q) - point(*far_p)) < 0))
+                out["colour"].append(float(np.linalg.norm(lab[q] - lab[y, x])))
+    return PixelPairs(**{k: np.asarray(v) for k, v in out.items()})
 
 
 # ----------------------------------------------------------------------------------------------
@@ -240,7 +279,7 @@ def superpixels(image: np.ndarray, pairs: PixelPairs, empty: np.ndarray, params:
     flat_empty = empty.ravel()
     keep = (colour[pairs.a] == colour[pairs.b]) & (flat_empty[pairs.a] == flat_empty[pairs.b])
     keep &= ~pairs.depth_edge | (flat_empty[pairs.a] & flat_empty[pairs.b])
-    keep &= pairs.crease <= np.deg2rad(params.crease_cut)
+    keep &= pairs.crease_near <= np.deg2rad(params.crease_cut)
     graph = coo_matrix((np.ones(int(keep.sum()), np.int8), (pairs.a[keep], pairs.b[keep])), shape=(H * W, H * W))
     _, labels = connected_components(graph, directed=False)
     return _consecutive_first(labels).reshape(H, W)
@@ -366,6 +405,43 @@ def agglomerate(labels: np.ndarray, lab: np.ndarray, pairs: PixelPairs, empty: n
                 lo, hi = (a, c_) if a < c_ else (c_, a)
                 heapq.heappush(heap, (cost(lo, hi), lo, hi, int(version[lo]), int(version[hi])))
         levels.append(snapshot())
+    return np.stack(levels)
+
+
+def _agglomerate_reference(labels: np.ndarray, lab: np.ndarray, pairs: PixelPairs, empty: np.ndarray,
+                           params: GeometryParams) -> np.ndarray:
+    """Brute-force twin of :func:`agglomerate`: every step recomputes every adjacent pair's cost from the
+    pixels and merges the cheapest (ties: the lower pair of labels), into the lower label (used by the tests)."""
+    H, W = labels.shape
+    current = labels.ravel().copy()
+    small_pixels = params.small_area * H * W
+    lab_flat = lab.reshape(-1, 3)
+    empty_flat = empty.ravel()
+    levels = []
+    for threshold in params.thresholds:
+        while True:
+            best = None
+            for i in np.unique(current):
+                for j in np.unique(current):
+                    if j <= i:
+                        continue
+                    in_i, in_j = current == i, current == j
+                    if 2 * empty_flat[in_i].sum() > in_i.sum() or 2 * empty_flat[in_j].sum() > in_j.sum():
+                        continue
+                    on = ((current[pairs.a] == i) & (current[pairs.b] == j)) | ((current[pairs.a] == j) & (current[pairs.b] == i))
+                    if not on.any():
+                        continue
+                    border = _Border(float(on.sum()), float(pairs.depth_edge[on].sum()),
+                                     float(np.where(pairs.concave[on], pairs.crease[on], 0.0).sum()),
+                                     float(np.where(pairs.concave[on], 0.0, pairs.crease[on]).sum()))
+                    c = merge_cost(float(in_i.sum()), float(in_j.sum()), lab_flat[in_i].mean(0), lab_flat[in_j].mean(0),
+                                   border, params, small_pixels)
+                    if best is None or c < best[0]:
+                        best = (c, i, j)
+            if best is None or best[0] > threshold:
+                break
+            current[current == best[2]] = best[1]
+        levels.append(current.reshape(H, W).astype(np.int32).copy())
     return np.stack(levels)
 
 
