@@ -17,6 +17,8 @@ from trace3d.masks.geometry import (
     _agglomerate_reference,
     _pixel_pairs_reference,
     agglomerate,
+    back_project,
+    dominant_planes,
     geometry_hierarchy,
     geometry_view_masks,
     pixel_pairs,
@@ -26,10 +28,10 @@ from trace3d.scene import Scene
 
 pytestmark = pytest.mark.usefixtures("single_numba_thread")
 
-W, H = 64, 48
-K = np.array([[40.0, 0.0, W / 2], [0.0, 40.0, 16.0], [0.0, 0.0, 1.0]])  # looking slightly down
-BOX = {"x": (-0.6, 0.6), "front": 3.0, "back": 4.5, "top": 0.8}  # a box standing on the floor
-FLOOR_Y, WALL_Z = 1.5, 8.0  # camera-space y grows downwards: the floor lies 1.5 below the camera
+W, H = 80, 64
+K = np.array([[60.0, 0.0, W / 2], [0.0, 60.0, 16.0], [0.0, 0.0, 1.0]])  # looking slightly down
+BOX = {"x": (-0.6, 0.6), "front": 3.0, "back": 4.5, "top": 0.5}  # a box standing on the floor
+FLOOR_Y, WALL_Z = 1.5, 20.0  # camera-space y grows downwards: the floor lies 1.5 below the camera
 
 
 def toy_view():
@@ -87,13 +89,15 @@ def test_toy_scene_box_floor_and_wall_come_apart_by_geometry_alone():
 
     box = (part == 2) | (part == 3)
     # the box (front and top joined across their convex edge) is one mask, and so are the floor and the wall
-    assert best_iou(box) > 0.95
+    assert best_iou(box) > 0.9  # 0.95 measured: the borders move by a pixel where strips dissolve
     assert best_iou(part == 0) > 0.95 and best_iou(part == 1) > 0.95
-    # no mask below the coarsest level holds the box with the floor (a concave contact) or the wall (a depth edge)
+    # below the coarsest level, the box's region holds none of the floor (a concave contact) or the wall (a
+    # depth edge) but for a pixel's width along its outline
     hierarchy, _ = geometry_hierarchy(image, depth, normal, alpha, K, params)
     for labels in hierarchy[:-1]:
+        box_label = np.bincount(labels[box]).argmax()
         for region in (part == 0, part == 1):
-            assert not set(np.unique(labels[box])) & set(np.unique(labels[region]))
+            assert (labels[region] == box_label).sum() < 0.1 * box.sum()
     # the colour alone (every pixel grey) separates nothing: the graph source has no edge to follow
     from trace3d.masks.graph import GraphParams, graph_view_masks
 
@@ -112,20 +116,20 @@ def test_pixel_cues_match_the_loop_twin_and_read_planes_steps_and_creases():
         np.testing.assert_array_equal(getattr(fast, name), getattr(slow, name), err_msg=name)
     for name in ("crease", "crease_near", "colour"):
         np.testing.assert_allclose(getattr(fast, name), getattr(slow, name), rtol=1e-9, atol=1e-9, err_msg=name)
-    pa, pb = part.ravel()[fast.a], part.ravel()[fast.b]
+    labelled = np.where(alpha < params.min_alpha, -1, part).ravel()  # empty pixels: a part of their own
+    pa, pb = labelled[fast.a], labelled[fast.b]
     empty = (alpha < params.min_alpha).ravel()
     solid = ~empty[fast.a] & ~empty[fast.b]
     # within one plane (the slanted floor included): no depth edge, no crease
     same = (pa == pb) & solid
-    assert not fast.depth_edge[same].any()
-    far = same.copy()  # creases show only within `crease_reach` of another part
+    far = same.copy()  # depth edges and creases show only within a few pixels of another part
     far_from_edge = np.ones(H * W, bool)
     for idx in np.nonzero(pa != pb)[0]:
         for p in (fast.a[idx], fast.b[idx]):
             y, x = divmod(int(p), W)
             far_from_edge.reshape(H, W)[max(y - 2, 0):y + 3, max(x - 2, 0):x + 3] = False
     far &= far_from_edge[fast.a] & far_from_edge[fast.b]
-    assert far.sum() > 500 and fast.crease[far].max() < 1e-9
+    assert far.sum() > 500 and fast.crease[far].max() < 1e-9 and not fast.depth_edge[far].any()
     # the box's top above the wall and its front before the wall: depth edges; empty pixels: depth edges
     assert fast.depth_edge[((pa == 1) & (pb >= 2)) | ((pa >= 2) & (pb == 1))].all()
     assert fast.depth_edge[~solid].all()
@@ -134,7 +138,10 @@ def test_pixel_cues_match_the_loop_twin_and_read_planes_steps_and_creases():
     vertical = fast.b - fast.a == W
     contact = vertical & (pa == 2) & (pb == 0)
     beside = ~vertical & (((pa == 2) & (pb == 0)) | ((pa == 0) & (pb == 2)))
-    assert fast.depth_edge[beside].mean() > 0.8  # all but the rows where box and floor meet
+    flat_depth = depth.ravel()
+    gap = 1 - np.minimum(flat_depth[fast.a], flat_depth[fast.b]) / np.maximum(flat_depth[fast.a], flat_depth[fast.b])
+    assert (beside & (gap > 0.6)).sum() >= 4 and (beside & (gap < 0.4)).sum() >= 4
+    assert fast.depth_edge[beside & (gap > 0.6)].all() and not fast.depth_edge[beside & (gap < 0.4)].any()
     assert contact.sum() >= 10 and not fast.depth_edge[contact].any()
     assert fast.concave[contact].all() and np.allclose(fast.crease[contact], np.pi / 2)
     edge = vertical & (pa == 3) & (pb == 2)
@@ -144,23 +151,35 @@ def test_pixel_cues_match_the_loop_twin_and_read_planes_steps_and_creases():
 def test_agglomeration_matches_the_brute_force_twin():
     rng = np.random.default_rng(1)
     depth, normal, part = toy_view()
-    # colour patches that split the parts, so that merging has choices to make
-    image = np.full((H, W, 3), 128, np.uint8)
-    for k in range(6):
-        y, x = rng.integers(0, H - 8), rng.integers(0, W - 10)
-        image[y:y + 8, x:x + 10] = rng.integers(40, 220, 3)
-    alpha = np.ones((H, W))
+    crop = (slice(16, 48), slice(20, 60))  # the box and some floor and wall, 32 x 40 (the brute force is slow)
+    depth, normal, part = depth[crop], normal[crop], part[crop]
+    Kc = K.copy()
+    Kc[0, 2] -= 20
+    Kc[1, 2] -= 16
+    h, w = depth.shape
+    # blocks of distinct colours (no two regions tie exactly in cost) that split the parts
+    image = np.repeat(np.repeat(rng.integers(60, 200, (h // 8 + 1, w // 8 + 1, 3)), 8, 0), 8, 1)[:h, :w].astype(np.uint8)
+    noise = rng.normal(0.0, 0.5, (h, w, 3))  # on the colours the merge reads: no two pieces of a block alike
+    alpha = np.ones((h, w))
     alpha[:2, :4] = 0.0
     from skimage.color import rgb2lab
 
-    for params in (GeometryParams(), GeometryParams(thresholds=[0.2, 0.6, 3.0], colour_weight=2.0, small_area=0.01)):
-        lab = rgb2lab(image)
-        pairs = pixel_pairs(lab, depth, normal, alpha, K, params)
+    # (thresholds away from the costs the toy's exact right angles give, 1.0 for a convex edge: there the two
+    # twins' sums in another order may fall either side)
+    for params in (GeometryParams(thresholds=[1.1, 2.3, 4.7, 9.1]),
+                   GeometryParams(thresholds=[0.2, 0.6, 3.1], colour_weight=2.0, small_area=0.01, max_planes=3)):
+        lab = rgb2lab(image) + noise
+        pairs = pixel_pairs(lab, depth, normal, alpha, Kc, params)
         empty = alpha < params.min_alpha
         labels = superpixels(image, pairs, empty, params)
-        assert 5 <= labels.max() + 1 <= 40  # a small problem for the brute force
-        fast = agglomerate(labels, lab, pairs, empty, params)
-        slow = _agglomerate_reference(labels, lab, pairs, empty, params)
+        assert 5 <= labels.max() + 1 <= 120  # a small problem for the brute force
+        planes = None
+        if params.max_planes:
+            planes = dominant_planes(back_project(depth, Kc), ~empty, params, np.random.default_rng(0))
+            assert planes.max() >= 1  # floor and wall at least
+            assert (planes[part == 0] == planes[part == 0][0]).mean() > 0.95  # the floor is one plane
+        fast = agglomerate(labels, lab, pairs, empty, params, planes)
+        slow = _agglomerate_reference(labels, lab, pairs, empty, params, planes)
         np.testing.assert_array_equal(fast, slow)
         for k in range(1, len(fast)):  # nested: every finer region inside one coarser region
             pairs_k = np.unique(fast[k - 1].astype(np.int64) * (fast.max() + 1) + fast[k])

@@ -1,20 +1,23 @@
 """The ``geometry`` mask source: nested masks from the fitted scene's depth and normals plus colour.
 
 Reads no ground truth. After the 2DGS fit, every view (train and test) is rendered from the fitted
-Gaussians in the cameras they were fitted with (the poses folder's): median depth ``D`` [H, W] and
+Gaussians in the cameras they were fitted with (the poses folder's): expected depth ``D`` [H, W] (the
+alpha-normalised blend; the median depth speckles on textured surfaces) and
 normal ``n`` [H, W, 3] (camera space, facing the camera), beside the view's photo. Then, per view:
 
-1. **Pixel pairs.** Each 4-neighbour pair (p, q) gets, from the back-projected points ``X`` and the
-   normals: the *plane residuals* ``r_pq = n_p . (X_q - X_p) / (D_p f)`` and ``r_qp`` (how far q lies
-   off p's tangent plane, in pixel footprints, ``f`` = 1 / focal length): near 0 on any plane
-   whatever its slant, large across a depth discontinuity; the pair is a **depth edge** when
-   ``max(|r_pq|, |r_qp|) > depth_edge`` or either pixel is empty (alpha < ``min_alpha``). The
+1. **Pixel pairs.** Each 4-neighbour pair (p, q) gets: the *relative depth jump* across it, measured
+   on the inverse depth (linear along any plane, so 0 on a plane whatever its slant and on a crease,
+   about ``gap / depth`` across an occlusion; :func:`inverse_depth_jump`, over a span of
+   ``2 depth_reach + 2`` pixels so that the blurred occlusions of a fit count); the pair is a
+   **depth edge** when the jump exceeds ``depth_edge`` or either pixel is empty (alpha < ``min_alpha``). The
    **crease** angle between the two normals, and its sign: **concave** when
    ``(n_q - n_p) . (X_q - X_p) < 0`` (a floor meeting a chair leg, a wall meeting the floor),
    convex otherwise (the edge of a box). The colour difference (CIELAB).
 2. **Superpixels.** Felzenszwalb's graph segmentation of the photo at a fine scale
    (``superpixel_scale``), cut further along depth edges and where neighbouring normals differ by more
-   than ``crease_cut`` (connected components of the 4-neighbour graph without those pairs).
+   than ``crease_cut`` (connected components of the 4-neighbour graph without those pairs); the thin
+   strips that a blurred edge's band of cut pairs leaves are dissolved into the nearest regions
+   (:func:`trace3d.masks.graph.dissolve_thin`, radius 1).
 3. **Agglomeration.** The region adjacency graph of the superpixels is merged greedily, cheapest
    pair first, with the cost of joining regions A and B::
 
@@ -52,7 +55,7 @@ from tqdm import tqdm
 
 from ..errors import Trace3DError
 from ..scene import Camera, Scene
-from .graph import REFERENCE_PIXELS, nested_masks
+from .graph import REFERENCE_PIXELS, dissolve_thin, nested_masks
 
 log = logging.getLogger(__name__)
 
@@ -65,12 +68,24 @@ class GeometryParams:
         thresholds: merge-cost levels of the hierarchy, finest first (>= 3, strictly increasing).
         superpixel_scale: Felzenszwalb ``scale`` of the colour over-segmentation at ``reference_pixels``.
         sigma: Felzenszwalb pre-smoothing width (pixels at ``reference_pixels``).
-        depth_edge: plane residual (pixel footprints) above which a pixel pair is a depth edge.
+        depth_edge: relative depth jump (:func:`inverse_depth_jump`) above which a pixel pair is a depth edge.
+        depth_reach: half-width (pixels) of the span a depth jump is measured across (blurred occlusions).
         crease_cut: angle (degrees) between a pixel pair's own normals above which the pair cuts a superpixel.
         colour_weight: weight of the mean-colour difference in the merge cost.
+        colour_sigma: the region colours of the merge cost are taken from the image blurred by a Gaussian of
+            this width (pixels at ``reference_pixels``; 0: unblurred), so that a fine texture (stripes, tiles)
+            averages out instead of keeping its stripes apart.
         depth_weight: weight of the border's share of depth edges in the merge cost.
         concave_weight: weight of the border's mean concave crease angle in the merge cost.
         convex_weight: weight of the border's mean convex crease angle in the merge cost.
+        plane_tolerance: a pixel lies on a plane when its distance to it is under this fraction of its depth.
+        plane_min_share: a dominant plane holds at least this fraction of the view's pixels.
+        max_planes: at most this many dominant planes per view (0: no plane cue).
+        plane_iterations: RANSAC draws per plane.
+        plane_weight: merge cost added when two regions do not lie on the same dominant plane and one does.
+        plane_discount: the colour term is multiplied by this when both regions lie on the same plane.
+        plane_member: a region lies on a plane when at least this share of its pixels does.
+        seed: seed of the RANSAC draws (with the frame's index).
         small_area: fraction of the image under which a region's merge cost is discounted.
         min_area: regions covering less than this fraction of the image give no mask.
         max_area: regions covering more than this fraction of the image give no mask.
@@ -82,21 +97,31 @@ class GeometryParams:
         reference_pixels: the image size (pixels) at which ``superpixel_scale`` and ``sigma`` apply.
     """
 
-    thresholds: list[float] = dataclasses.field(default_factory=lambda: [0.5, 1.0, 2.0, 4.0])
+    thresholds: list[float] = dataclasses.field(default_factory=lambda: [1.0, 2.0, 4.0, 8.0])
     superpixel_scale: float = 60.0
     sigma: float = 0.5
-    depth_edge: float = 3.0
+    depth_edge: float = 0.5
+    depth_reach: int = 1
     crease_cut: float = 30.0
-    colour_weight: float = 1.0
+    colour_weight: float = 2.0
+    colour_sigma: float = 1.5
     depth_weight: float = 8.0
     concave_weight: float = 3.0
     convex_weight: float = 0.5
-    small_area: float = 0.002
-    min_area: float = 0.003
+    plane_tolerance: float = 0.03
+    plane_min_share: float = 0.05
+    max_planes: int = 0
+    plane_iterations: int = 200
+    plane_weight: float = 2.0
+    plane_discount: float = 0.3
+    plane_member: float = 0.6
+    seed: int = 0
+    small_area: float = 0.005
+    min_area: float = 0.0015
     max_area: float = 0.9
     min_alpha: float = 0.5
     normal_smooth: int = 0
-    crease_reach: int = 1
+    crease_reach: int = 2
     near: float = 0.01
     reference_pixels: int = REFERENCE_PIXELS
 
@@ -109,10 +134,14 @@ class GeometryParams:
         for name in ("superpixel_scale", "depth_edge", "crease_cut", "near"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("sigma", "colour_weight", "depth_weight", "concave_weight", "convex_weight", "normal_smooth", "crease_reach"):
+        for name in ("sigma", "colour_weight", "depth_weight", "concave_weight", "convex_weight", "normal_smooth", "crease_reach", "depth_reach",
+                     "colour_sigma"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        for name in ("small_area", "min_area", "min_alpha"):
+        for name in ("plane_tolerance", "plane_weight", "plane_discount", "max_planes", "plane_iterations"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("small_area", "min_area", "min_alpha", "plane_min_share", "plane_member"):
             if not 0.0 <= getattr(self, name) < 1.0:
                 raise ValueError(f"{name} must be in [0, 1), got {getattr(self, name)}")
         if not self.min_area < self.max_area <= 1.0:
@@ -127,7 +156,7 @@ class GeometryParams:
 
 
 def render_geometry(model, camera: Camera, near: float = 0.01) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Median depth [H, W], unit camera-space normals [H, W, 3] and alpha [H, W] of ``model`` in ``camera``
+    """Expected depth [H, W], unit camera-space normals [H, W, 3] and alpha [H, W] of ``model`` in ``camera``
     (float64; depth 0 and normal 0 where nothing was hit)."""
     import torch
 
@@ -136,11 +165,14 @@ def render_geometry(model, camera: Camera, near: float = 0.01) -> tuple[np.ndarr
     with torch.no_grad():
         zeros = torch.zeros(len(model), 1, dtype=model.means.dtype)
         out = render(model.splats(), camera, zeros, near=near)
-    depth = out.median_depth.double().numpy()
+    alpha = out.alpha.double().numpy()
+    # the expected depth sum_k w_k z_k / alpha: on a fitted scene far smoother than the median depth, whose
+    # per-pixel pick of one splat speckles textured surfaces
+    depth = np.where(alpha > 1e-6, out.depth.double().numpy() / np.maximum(alpha, 1e-6), 0.0)
     normal = out.normal.double().numpy()
     length = np.linalg.norm(normal, axis=2, keepdims=True)
     normal = np.where(length > 1e-8, normal / np.maximum(length, 1e-12), 0.0)
-    return depth, normal, out.alpha.double().numpy()
+    return depth, normal, alpha
 
 
 def back_project(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
@@ -175,6 +207,37 @@ class PixelPairs:
     colour: np.ndarray
 
 
+def inverse_depth_jump(inv: np.ndarray, axis: int, reach: int) -> np.ndarray:
+    """Relative depth jump across every neighbour pair along ``axis`` (1: pairs (x, x + 1); 0: (y, y + 1)).
+
+    With inverse depth ``rho`` (linear along any plane in the image) and the span ``lo = x - reach``,
+    ``hi = x + 1 + reach`` (indices clipped to the image): ``|rho(hi) - rho(lo) - (hi - lo) s| / max(rho(x),
+    rho(x + 1))`` where ``s`` is the mean of the one-pixel slopes just outside the span. Zero on a plane
+    whatever its slant, and on a crease; about ``gap / depth`` across an occlusion blurred over up to
+    ``2 reach + 1`` pixels.
+
+    Args:
+        inv: [H, W] inverse depth (0 where empty).
+    Returns:
+        [H, W - 1] (axis 1) or [H - 1, W] (axis 0) float64.
+    """
+    size = inv.shape[axis]
+    x = np.arange(size - 1)
+    lo, hi = np.clip(x - reach, 0, size - 1), np.clip(x + 1 + reach, 0, size - 1)
+    lo_out, hi_out = np.clip(x - reach - 1, 0, size - 1), np.clip(x + 2 + reach, 0, size - 1)
+
+    def take(i):
+        return np.take(inv, i, axis=axis)
+
+    slope = 0.5 * ((take(lo) - take(lo_out)) + (take(hi_out) - take(hi)))
+    span = (np.minimum(x + 1 + reach, size - 1) - np.maximum(x - reach, 0)).astype(np.float64)
+    shape = [1, 1]
+    shape[axis] = size - 1
+    across = take(hi) - take(lo) - span.reshape(shape) * slope
+    ref = np.maximum(np.maximum(take(x), take(x + 1)), 1e-12)
+    return np.abs(across) / ref
+
+
 def pixel_pairs(lab: np.ndarray, depth: np.ndarray, normal: np.ndarray, alpha: np.ndarray, K: np.ndarray,
                 params: GeometryParams) -> PixelPairs:
     """The cues of every 4-neighbour pixel pair (module docstring, step 1).
@@ -193,7 +256,7 @@ def pixel_pairs(lab: np.ndarray, depth: np.ndarray, normal: np.ndarray, alpha: n
         normal = np.where(length > 1e-8, smooth / np.maximum(length, 1e-12), 0.0)
     points = back_project(depth, K)
     empty = (alpha < params.min_alpha) | (depth <= 0)
-    footprint = np.maximum(depth, 1e-12) / K[0, 0]
+    inv = np.where(empty, 0.0, 1.0 / np.maximum(depth, 1e-12))
     index = np.arange(H * W).reshape(H, W)
     reach = params.crease_reach
     pieces = {k: [] for k in ("a", "b", "depth_edge", "crease", "crease_near", "concave", "colour")}
@@ -205,11 +268,9 @@ def pixel_pairs(lab: np.ndarray, depth: np.ndarray, normal: np.ndarray, alpha: n
         def take(a, i):
             return np.take(a, i, axis=axis)
 
-        d = take(points, hi) - take(points, lo)
         n_p, n_q = take(normal, lo), take(normal, hi)
-        r_pq = np.einsum("...i,...i", n_p, d) / take(footprint, lo)
-        r_qp = -np.einsum("...i,...i", n_q, d) / take(footprint, hi)
-        jump = (np.maximum(np.abs(r_pq), np.abs(r_qp)) > params.depth_edge) | take(empty, lo) | take(empty, hi)
+        jump = inverse_depth_jump(inv, axis, params.depth_reach) > params.depth_edge
+        jump |= take(empty, lo) | take(empty, hi)
         # creases from the normals `reach` pixels off on either side (a crease blurred over a few pixels)
         m_p, m_q = take(normal, far_lo), take(normal, far_hi)
         cos = np.clip(np.einsum("...i,...i", m_p, m_q), -1.0, 1.0)
@@ -240,18 +301,35 @@ def _pixel_pairs_reference(lab: np.ndarray, depth: np.ndarray, normal: np.ndarra
     def empty(y, x):
         return alpha[y, x] < params.min_alpha or depth[y, x] <= 0
 
+    inv = np.zeros((H, W))
+    for y in range(H):
+        for x in range(W):
+            inv[y, x] = 0.0 if empty(y, x) else 1.0 / max(depth[y, x], 1e-12)
+
+    def jump_at(line, at):
+        reach_d = params.depth_reach
+        size = len(line)
+
+        def rho(i):
+            return line[min(max(i, 0), size - 1)]
+
+        lo, hi = at - reach_d, at + 1 + reach_d
+        slope = 0.5 * ((rho(lo) - rho(lo - 1)) + (rho(hi + 1) - rho(hi)))
+        span = min(hi, size - 1) - max(lo, 0)
+        return abs(rho(hi) - rho(lo) - span * slope) / max(rho(at), rho(at + 1), 1e-12)
+
     for dy, dx in ((0, 1), (1, 0)):
         for y in range(H - dy):
             for x in range(W - dx):
                 q = (y + dy, x + dx)
                 far_p = (max(y - reach * dy, 0), max(x - reach * dx, 0))
                 far_q = (min(q[0] + reach * dy, H - 1), min(q[1] + reach * dx, W - 1))
-                d = point(*q) - point(y, x)
-                r_pq = normal[y, x] @ d / (max(depth[y, x], 1e-12) / K[0, 0])
-                r_qp = -(normal[q] @ d) / (max(depth[q], 1e-12) / K[0, 0])
+                line = inv[y] if dy == 0 else inv[:, x]
+                at = x if dy == 0 else y
+                jump = jump_at(line, at)
                 out["a"].append(y * W + x)
                 out["b"].append(q[0] * W + q[1])
-                out["depth_edge"].append(max(abs(r_pq), abs(r_qp)) > params.depth_edge or empty(y, x) or empty(*q))
+                out["depth_edge"].append(jump > params.depth_edge or empty(y, x) or empty(*q))
                 m_p, m_q = normal[far_p], normal[far_q]
                 out["crease"].append(float(np.arccos(np.clip(m_p @ m_q, -1.0, 1.0))))
                 out["crease_near"].append(float(np.arccos(np.clip(normal[y, x] @ normal[q], -1.0, 1.0))))
@@ -282,7 +360,12 @@ def superpixels(image: np.ndarray, pairs: PixelPairs, empty: np.ndarray, params:
     keep &= pairs.crease_near <= np.deg2rad(params.crease_cut)
     graph = coo_matrix((np.ones(int(keep.sum()), np.int8), (pairs.a[keep], pairs.b[keep])), shape=(H * W, H * W))
     _, labels = connected_components(graph, directed=False)
-    return _consecutive_first(labels).reshape(H, W)
+    # a depth edge or crease blurred over a few pixels cuts a band of pairs: the strips between them dissolve
+    # into the nearest regions (empty pixels stay apart)
+    labels = _consecutive_first(labels).reshape(H, W)
+    dissolved = dissolve_thin(labels, 1)
+    dissolved[empty] = labels[empty]
+    return _consecutive_first(dissolved.ravel()).reshape(H, W)
 
 
 def _consecutive_first(labels: np.ndarray) -> np.ndarray:
@@ -329,10 +412,14 @@ def region_graph(labels: np.ndarray, lab: np.ndarray, pairs: PixelPairs, empty: 
 
 
 def merge_cost(area_a: float, area_b: float, colour_a: np.ndarray, colour_b: np.ndarray, border: _Border,
-               params: GeometryParams, small_pixels: float) -> float:
-    """The cost of joining two regions (module docstring, step 3); colours are CIELAB means."""
+               params: GeometryParams, small_pixels: float, plane_a: int = -1, plane_b: int = -1) -> float:
+    """The cost of joining two regions (module docstring, step 3); colours are CIELAB means, planes the
+    regions' dominant planes (-1: none)."""
     quarter = np.pi / 4
+    same_plane = plane_a == plane_b and plane_a >= 0
     cost = (params.colour_weight * float(np.linalg.norm(colour_a - colour_b)) / 10.0
+            * (params.plane_discount if same_plane else 1.0)
+            + (params.plane_weight if plane_a != plane_b else 0.0)
             + params.depth_weight * border.depth / border.pairs
             + params.concave_weight * border.concave / border.pairs / quarter
             + params.convex_weight * border.convex / border.pairs / quarter)
@@ -342,17 +429,87 @@ def merge_cost(area_a: float, area_b: float, colour_a: np.ndarray, colour_b: np.
     return cost
 
 
+def plane_histogram(labels: np.ndarray, planes: np.ndarray | None, n: int) -> np.ndarray:
+    """[n, P] pixel counts of each region of ``labels`` on each dominant plane (P = 0 without planes)."""
+    if planes is None or planes.max() < 0:
+        return np.zeros((n, 0))
+    P = int(planes.max()) + 1
+    on = planes.ravel() >= 0
+    key = labels.ravel()[on].astype(np.int64) * P + planes.ravel()[on]
+    return np.bincount(key, minlength=n * P).reshape(n, P).astype(np.float64)
+
+
+def dominant_planes(points: np.ndarray, valid: np.ndarray, params: GeometryParams,
+                    rng: np.random.Generator) -> np.ndarray:
+    """The view's dominant planes (walls, floor, table tops) by sequential RANSAC.
+
+    A pixel lies on a plane when its distance to it is under ``plane_tolerance`` times its depth. Up to
+    ``max_planes`` planes, each drawn ``plane_iterations`` times from 3 random pixels not yet assigned,
+    kept while it holds at least ``plane_min_share`` of the view's pixels, then refitted (least squares)
+    to its inliers; a pixel goes to the first plane it lies on.
+
+    Args:
+        points: [H, W, 3] camera-space points; valid: [H, W] bool (pixels with a surface).
+    Returns:
+        [H, W] int32: the plane of each pixel, -1 where none.
+    """
+    H, W = valid.shape
+    out = np.full((H, W), -1, np.int32)
+    flat = points.reshape(-1, 3)
+    free = valid.ravel().copy()
+    depth = np.maximum(flat[:, 2], 1e-12)
+    need = params.plane_min_share * valid.sum()
+    for k in range(params.max_planes):
+        candidates = np.nonzero(free)[0]
+        if len(candidates) < max(3, need):
+            break
+        best, best_count = None, 0
+        for _ in range(params.plane_iterations):
+            p0, p1, p2 = flat[rng.choice(candidates, 3, replace=False)]
+            normal = np.cross(p1 - p0, p2 - p0)
+            length = np.linalg.norm(normal)
+            if length < 1e-12:
+                continue
+            normal /= length
+            inliers = np.abs((flat[candidates] - p0) @ normal) < params.plane_tolerance * depth[candidates]
+            count = int(inliers.sum())
+            if count > best_count:
+                best, best_count = inliers, count
+        if best is None or best_count < need:
+            break
+        members = candidates[best]
+        centre = flat[members].mean(axis=0)
+        normal = np.linalg.svd(flat[members] - centre, full_matrices=False)[2][-1]
+        on = np.abs((flat[candidates] - centre) @ normal) < params.plane_tolerance * depth[candidates]
+        if on.sum() < need:
+            break
+        out.ravel()[candidates[on]] = k
+        free[candidates[on]] = False
+    return out
+
+
+def region_plane(counts: np.ndarray, area: float, member: float) -> int:
+    """The plane a region lies on (-1: none) from its pixel counts per plane [P] and its area."""
+    if len(counts) == 0:
+        return -1
+    k = int(np.argmax(counts))
+    return k if counts[k] >= member * area else -1
+
+
 def agglomerate(labels: np.ndarray, lab: np.ndarray, pairs: PixelPairs, empty: np.ndarray,
-                params: GeometryParams) -> np.ndarray:
+                params: GeometryParams, planes: np.ndarray | None = None) -> np.ndarray:
     """Greedy merging of the regions ``labels`` [H, W], cheapest first; the partition before the first merge
     costing more than each threshold (module docstring, step 3).
 
+    Args:
+        planes: [H, W] int, the dominant plane of each pixel (-1: none; :func:`dominant_planes`), optional.
     Returns:
         [K, H, W] int32 nested label maps, finest first (K = len(thresholds)).
     """
     H, W = labels.shape
     area, colour_sum, region_empty, borders = region_graph(labels, lab, pairs, empty)
     n = len(area)
+    plane_counts = plane_histogram(labels, planes, n)
     small_pixels = params.small_area * H * W
     parent = np.arange(n)
     version = np.zeros(n, np.int64)
@@ -365,7 +522,8 @@ def agglomerate(labels: np.ndarray, lab: np.ndarray, pairs: PixelPairs, empty: n
 
     def cost(i: int, j: int) -> float:
         return merge_cost(area[i], area[j], colour_sum[i] / area[i], colour_sum[j] / area[j], neighbours[i][j],
-                          params, small_pixels)
+                          params, small_pixels, region_plane(plane_counts[i], area[i], params.plane_member),
+                          region_plane(plane_counts[j], area[j], params.plane_member))
 
     heap = [(cost(i, j), i, j, 0, 0) for (i, j) in borders if j in neighbours[i]]
     heapq.heapify(heap)
@@ -390,6 +548,7 @@ def agglomerate(labels: np.ndarray, lab: np.ndarray, pairs: PixelPairs, empty: n
             parent[b] = a
             area[a] += area[b]
             colour_sum[a] += colour_sum[b]
+            plane_counts[a] += plane_counts[b]
             version[a] += 1
             del neighbours[a][b]
             for c_, border in neighbours.pop(b).items():
@@ -409,7 +568,7 @@ def agglomerate(labels: np.ndarray, lab: np.ndarray, pairs: PixelPairs, empty: n
 
 
 def _agglomerate_reference(labels: np.ndarray, lab: np.ndarray, pairs: PixelPairs, empty: np.ndarray,
-                           params: GeometryParams) -> np.ndarray:
+                           params: GeometryParams, planes: np.ndarray | None = None) -> np.ndarray:
     """Brute-force twin of :func:`agglomerate`: every step recomputes every adjacent pair's cost from the
     pixels and merges the cheapest (ties: the lower pair of labels), into the lower label (used by the tests)."""
     H, W = labels.shape
@@ -417,6 +576,13 @@ def _agglomerate_reference(labels: np.ndarray, lab: np.ndarray, pairs: PixelPair
     small_pixels = params.small_area * H * W
     lab_flat = lab.reshape(-1, 3)
     empty_flat = empty.ravel()
+    planes_flat = planes.ravel() if planes is not None else np.full(H * W, -1)
+    P = int(planes_flat.max()) + 1
+
+    def plane_of(inside):
+        counts = np.array([(planes_flat[inside] == k).sum() for k in range(P)], np.float64)
+        return region_plane(counts, float(inside.sum()), params.plane_member)
+
     levels = []
     for threshold in params.thresholds:
         while True:
@@ -435,7 +601,7 @@ def _agglomerate_reference(labels: np.ndarray, lab: np.ndarray, pairs: PixelPair
                                      float(np.where(pairs.concave[on], pairs.crease[on], 0.0).sum()),
                                      float(np.where(pairs.concave[on], 0.0, pairs.crease[on]).sum()))
                     c = merge_cost(float(in_i.sum()), float(in_j.sum()), lab_flat[in_i].mean(0), lab_flat[in_j].mean(0),
-                                   border, params, small_pixels)
+                                   border, params, small_pixels, plane_of(in_i), plane_of(in_j))
                     if best is None or c < best[0]:
                         best = (c, i, j)
             if best is None or best[0] > threshold:
@@ -451,7 +617,7 @@ def _agglomerate_reference(labels: np.ndarray, lab: np.ndarray, pairs: PixelPair
 
 
 def geometry_hierarchy(image: np.ndarray, depth: np.ndarray, normal: np.ndarray, alpha: np.ndarray, K: np.ndarray,
-                       params: GeometryParams) -> tuple[np.ndarray, np.ndarray]:
+                       params: GeometryParams, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """The nested hierarchy of one view.
 
     Args:
@@ -469,13 +635,21 @@ def geometry_hierarchy(image: np.ndarray, depth: np.ndarray, normal: np.ndarray,
     pairs = pixel_pairs(lab, depth, normal, alpha, K, params)
     empty = (alpha < params.min_alpha) | (depth <= 0)
     labels = superpixels(image, pairs, empty, params)
-    return agglomerate(labels, lab, pairs, empty, params), empty
+    if params.colour_sigma > 0:  # region colours from the blurred image: a fine texture averages out
+        from scipy import ndimage
+
+        sigma = params.colour_sigma * float(np.sqrt(depth.size / params.reference_pixels))
+        lab = np.stack([ndimage.gaussian_filter(lab[..., c], sigma, mode="nearest") for c in range(3)], axis=2)
+    planes = None
+    if params.max_planes > 0:
+        planes = dominant_planes(back_project(depth, K), ~empty, params, np.random.default_rng([params.seed, seed]))
+    return agglomerate(labels, lab, pairs, empty, params, planes), empty
 
 
 def geometry_view_masks(image: np.ndarray, depth: np.ndarray, normal: np.ndarray, alpha: np.ndarray, K: np.ndarray,
-                        params: GeometryParams) -> tuple[np.ndarray, np.ndarray]:
+                        params: GeometryParams, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """One view's masks [M, H, W] bool and scores [M] float32 (all 1); see :func:`geometry_hierarchy`."""
-    hierarchy, empty = geometry_hierarchy(image, depth, normal, alpha, K, params)
+    hierarchy, empty = geometry_hierarchy(image, depth, normal, alpha, K, params, seed)
     H, W = depth.shape
     masks, _ = nested_masks(hierarchy, max(1, int(np.ceil(params.min_area * H * W))),
                             int(np.floor(params.max_area * H * W)), exclude=empty)
@@ -497,14 +671,14 @@ def iter_geometry_masks(scene: Scene, params: GeometryParams, gaussians_dir: Pat
     model = GaussianModel.read_ply(Path(gaussians_dir) / "point_cloud.ply")
     cameras = read_pose_cameras(Path(poses_dir), scene) if poses_dir is not None else list(scene.cameras)
     by_name = {cam.name: cam for cam in cameras}
-    log.info("geometry masks: %d Gaussians, depth edges > %.1f footprints, concave creases, colour; levels %s",
+    log.info("geometry masks: %d Gaussians, depth edges > %.2f of the depth, concave creases, colour; levels %s",
              len(model), params.depth_edge, params.thresholds)
-    for scene_cam in tqdm(scene.cameras, desc="geometry masks", unit="view", mininterval=5.0):
+    for index, scene_cam in enumerate(tqdm(scene.cameras, desc="geometry masks", unit="view", mininterval=5.0)):
         cam = by_name.get(scene_cam.name)
         if cam is None:
             log.warning("geometry masks: frame %s has no pose in the fit; it gets no masks", scene_cam.name)
             yield scene_cam.name, np.zeros((0, scene_cam.height, scene_cam.width), bool), np.zeros(0, np.float32)
             continue
         depth, normal, alpha = render_geometry(model, cam, params.near)
-        masks, scores = geometry_view_masks(scene.image(cam.name), depth, normal, alpha, cam.K, params)
+        masks, scores = geometry_view_masks(scene.image(cam.name), depth, normal, alpha, cam.K, params, index)
         yield cam.name, masks, scores
