@@ -663,8 +663,7 @@ def iter_geometry_masks(scene: Scene, params: GeometryParams, gaussians_dir: Pat
         raise Trace3DError("the geometry mask source renders the fitted scene: give `trace3d masks` the 2DGS fit "
                            "with --gaussians (and the poses folder it was fitted with, --poses).")
     from ..gaussians import GaussianModel
-    from ..scene import require_known_poses
-    from ..training import read_pose_cameras
+    from ..scene import read_pose_cameras, require_known_poses
 
     if poses_dir is None:
         require_known_poses(scene, "trace3d masks --source geometry")
