@@ -409,3 +409,37 @@ def test_readme_capture_config_dry_runs(tmp_path):
 
     args = build_parser().parse_args(line.split()[1:])
     assert args.view == "train_r_12" and args.point == "210,160"
+
+
+def test_capture_doc_two_core_config_dry_runs(tmp_path):
+    """docs/capture.md's 2-core capture config: an explicit fit length and lift, geometry masks, and the DAG
+    gaussians -> masks (geometry) -> patches -> trace."""
+    import os
+    import re
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import yaml
+
+    repo = Path(__file__).resolve().parent.parent
+    snakemake = shutil.which("snakemake", path=str(Path(sys.executable).parent)) or shutil.which("snakemake")
+    if snakemake is None:
+        pytest.skip("snakemake is not installed")
+    section = (repo / "docs" / "capture.md").read_text().split("## A capture end to end on 2 CPU cores", 1)[1]
+    config = yaml.safe_load(re.search(r"```yaml\n(.*?)```", section, flags=re.S).group(1))
+    assert config["defaults"]["lift"]["iterations"] and config["defaults"]["gaussians"]["schedule_scale"]
+    assert config["defaults"]["masks"]["source"] == "geometry"
+    config["data_root"] = str(tmp_path / "captures")
+    (tmp_path / "captures" / config["scenes"]["fern"]["source"]).mkdir(parents=True)
+    config["results"] = str(tmp_path / "results")
+    (tmp_path / "fern.yaml").write_text(yaml.safe_dump(config))
+    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
+    out = subprocess.run([snakemake, "-s", str(repo / "Snakefile"), "-n", "-p", "--cores", "2",
+                          "--configfile=fern.yaml", f"{tmp_path}/results/fern/trace-paper"],
+                         cwd=tmp_path, capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stdout + out.stderr
+    masks = re.search(r"trace3d --threads \d+ masks .*", out.stdout).group(0)
+    assert "--source geometry" in masks and f"--gaussians {tmp_path}/results/fern/gaussians" in masks
+    assert '"schedule_scale": 0.05' in out.stdout and '"images_factor": 8' in out.stdout
