@@ -97,7 +97,7 @@ class GeometryParams:
         reference_pixels: the image size (pixels) at which ``superpixel_scale`` and ``sigma`` apply.
     """
 
-    thresholds: list[float] = dataclasses.field(default_factory=lambda: [1.0, 2.0, 4.0, 8.0])
+    thresholds: list[float] = dataclasses.field(default_factory=lambda: [2.0, 4.0, 8.0])
     superpixel_scale: float = 60.0
     sigma: float = 0.5
     depth_edge: float = 0.5
@@ -117,7 +117,7 @@ class GeometryParams:
     plane_member: float = 0.6
     seed: int = 0
     small_area: float = 0.005
-    min_area: float = 0.0015
+    min_area: float = 0.003
     max_area: float = 0.9
     min_alpha: float = 0.5
     normal_smooth: int = 0
