@@ -308,16 +308,33 @@ def scene_kind_args(wildcards):
     return f"{kind} --source {shlex.quote(os.path.normpath(source))} --params {params}"
 
 
+# the mask sources that render the 2DGS fit: their masks need the gaussians
+FITTED_MASK_SOURCES = _steps.FITTED_MASK_SOURCES
+
+
+def mask_inputs(wildcards):
+    """The masks rule's inputs: the scene; for a source that renders the fit, also the gaussians and poses."""
+    inputs = {"scene": base_folder("scene")(wildcards)}
+    if mask_source(wildcards) in FITTED_MASK_SOURCES:
+        inputs["gaussians"] = base_folder("gaussians")(wildcards)
+        inputs["poses"] = base_folder("poses")(wildcards)
+    return inputs
+
+
 def mask_args(wildcards):
-    """The `trace3d masks` arguments: the mask source and that source's parameters."""
+    """The `trace3d masks` arguments: the mask source and that source's parameters (and the fit it renders)."""
     merged = json.loads(step_params(wildcards.scene, "masks"))
     source = merged.get("source", "simulated")
     params = shlex.quote(json.dumps(merged.get(source, {}), sort_keys=True))
-    return f"--source {source} --params {params}"
+    fitted = ""
+    if source in FITTED_MASK_SOURCES:
+        inputs = mask_inputs(wildcards)
+        fitted = f" --gaussians {shlex.quote(inputs['gaussians'])} --poses {shlex.quote(inputs['poses'])}"
+    return f"--source {source} --params {params}{fitted}"
 
 
 def mask_source(wildcards):
-    """The scene's mask source (simulated | files | sam | graph): SAM needs more threads, memory and time
+    """The scene's mask source (simulated | files | sam | graph | geometry): SAM needs more threads, memory and time
     (graph: one thread, under a second per 160x120 view)."""
     return json.loads(step_params(wildcards.scene, "masks")).get("source", "simulated")
 

@@ -1,9 +1,11 @@
-# 2D masks per view (simulated from ground truth | the user's files | SAM), then disjoint patches.
+# 2D masks per view (simulated from ground truth | the user's files | SAM | graph | geometry), then
+# disjoint patches. The geometry source renders the 2DGS fit, so its masks need the gaussians (and the
+# poses they were fitted with); the other sources read the scene only.
 
 
 rule masks:
     input:
-        base_folder("scene"),
+        unpack(mask_inputs),
     output:
         directory(f"{RESULTS}/{{scene}}/masks"),
     params:
@@ -20,7 +22,7 @@ rule masks:
     conda:
         ENV
     shell:
-        "trace3d --threads {threads} masks --scene {input:q} --out {output:q} {params.args} > {log:q} 2>&1"
+        "trace3d --threads {threads} masks --scene {input.scene:q} --out {output:q} {params.args} > {log:q} 2>&1"
 
 
 rule patches:

@@ -270,7 +270,8 @@ MIRRORED = np.diag([1.0, 1.0, -1.0, 1.0]).tolist()
 
 
 @pytest.mark.parametrize("case, edit, message", [
-    ("missing image", lambda d: d["frames"][1].update(file_path="./images/nope.png"), "is missing"),
+    ("every image missing", lambda d: [f.update(file_path=f"./images/nope{k}.png") for k, f in enumerate(d["frames"])],
+     "have an image file"),
     ("no pose", lambda d: d["frames"][3].pop("transform_matrix"), "no 'transform_matrix'"),
     ("scaled rotation", lambda d: _set_matrix(d, 0, SCALED), "not a rotation"),
     ("sheared", lambda d: _set_matrix(d, 0, SHEARED), "not a rotation"),
@@ -294,6 +295,34 @@ def test_bad_input_is_one_sentence(room, tmp_path, case, edit, message, capsys):
     assert len(errors) == 1 and "Traceback" not in err, err
     assert message in errors[0] and ("transforms.json" in errors[0] or "nope.png" in errors[0]), err
     assert not out.exists()
+
+
+def test_frames_without_images_are_skipped_and_named(room, tmp_path, caplog):
+    """A capture listing more frames than it ships images for imports the others, says so in one line
+    (how many, the first three), and is refused only below min_images."""
+    scene, points = room
+    write_instant_ngp(scene, tmp_path / "ngp")
+    gone = [scene.cameras[k].name for k in (1, 2, 4, 5)]
+    for name in gone:
+        (tmp_path / "ngp" / "images" / f"{name}.png").unlink()
+    with caplog.at_level("WARNING", logger="trace3d.datasets.transforms"):
+        import_transforms(tmp_path / "ngp", tmp_path / "s", TransformsParams(test_every=0))
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1, warnings
+    assert f"skipped 4 of {len(scene.cameras)} frames" in warnings[0]
+    assert all(f"{name}.png" in warnings[0] for name in gone[:3]) and "and 1 more" in warnings[0]
+    assert f"{gone[3]}.png" not in warnings[0]
+    imported = Scene.read(tmp_path / "s")
+    kept = [c.name for c in scene.cameras if c.name not in gone]
+    assert [c.name for c in imported.cameras] == kept
+    for name in kept:  # the kept frames keep their own poses
+        assert _reprojection_error(imported.camera(name), scene.camera(name), points,
+                                   lambda x: WORLD_SCALE * x @ WORLD_ROTATION.T + WORLD_OFFSET) < 0.5
+    # below the stated minimum: refused, naming the file, the counts and the first missing images
+    with pytest.raises(Trace3DError, match=rf"only 2 of its {len(scene.cameras)} frames have an image file .*"
+                                           r"fewer than min_images 3"):
+        import_transforms(tmp_path / "ngp", tmp_path / "r", TransformsParams(min_images=3))
+    assert not (tmp_path / "r").exists()
 
 
 def test_mixed_sizes_need_per_frame_intrinsics(room, tmp_path):
@@ -397,3 +426,37 @@ def test_readme_capture_config_dry_runs(tmp_path):
 
     args = build_parser().parse_args(line.split()[1:])
     assert args.view == "train_r_12" and args.point == "210,160"
+
+
+def test_capture_doc_two_core_config_dry_runs(tmp_path):
+    """docs/capture.md's 2-core capture config: an explicit fit length and lift, geometry masks, and the DAG
+    gaussians -> masks (geometry) -> patches -> trace."""
+    import os
+    import re
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import yaml
+
+    repo = Path(__file__).resolve().parent.parent
+    snakemake = shutil.which("snakemake", path=str(Path(sys.executable).parent)) or shutil.which("snakemake")
+    if snakemake is None:
+        pytest.skip("snakemake is not installed")
+    section = (repo / "docs" / "capture.md").read_text().split("## A capture end to end on 2 CPU cores", 1)[1]
+    config = yaml.safe_load(re.search(r"```yaml\n(.*?)```", section, flags=re.S).group(1))
+    assert config["defaults"]["lift"]["iterations"] and config["defaults"]["gaussians"]["schedule_scale"]
+    assert config["defaults"]["masks"]["source"] == "geometry"
+    config["data_root"] = str(tmp_path / "captures")
+    (tmp_path / "captures" / config["scenes"]["fern"]["source"]).mkdir(parents=True)
+    config["results"] = str(tmp_path / "results")
+    (tmp_path / "fern.yaml").write_text(yaml.safe_dump(config))
+    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
+    out = subprocess.run([snakemake, "-s", str(repo / "Snakefile"), "-n", "-p", "--cores", "2",
+                          "--configfile=fern.yaml", f"{tmp_path}/results/fern/trace-paper"],
+                         cwd=tmp_path, capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stdout + out.stderr
+    masks = re.search(r"trace3d --threads \d+ masks .*", out.stdout).group(0)
+    assert "--source geometry" in masks and f"--gaussians {tmp_path}/results/fern/gaussians" in masks
+    assert '"schedule_scale": 0.05' in out.stdout and '"images_factor": 8' in out.stdout

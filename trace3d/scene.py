@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 from pathlib import Path
 from typing import Iterable, Literal, Sequence
 
@@ -33,6 +34,8 @@ from PIL import Image
 
 from .errors import SceneFormatError
 from .io import atomic_file, write_json
+
+log = logging.getLogger(__name__)
 
 SPLITS = ("train", "test")
 LEVELS = ("part", "object", "group")
@@ -517,3 +520,36 @@ def require_known_poses(scene: Scene, step: str) -> None:
             f"{scene.root / 'meta.json'}: the scene's poses are unknown (placeholders), so `{step}` needs the "
             "poses step's folder (--poses) with the cameras COLMAP estimated."
         )
+
+
+def read_pose_cameras(poses_dir: Path, scene: "Scene") -> list[Camera]:
+    """The cameras of ``poses_dir/cameras.json`` for the scene's frames, in the scene's frame order.
+
+    Raises if a test view is missing (the poses step must not drop evaluation views); train views
+    that SfM did not register are skipped with a warning.
+    """
+    path = poses_dir / "cameras.json"
+    if not path.is_file():
+        raise SceneFormatError(f"{path}: poses cameras.json is missing.")
+    by_name = {cam.name: cam for cam in read_cameras(path)}
+    unknown = sorted(set(by_name) - {c.name for c in scene.cameras})
+    if unknown:
+        raise SceneFormatError(f"{path}: frames {unknown[:5]} are not in the scene {scene.root}.")
+    missing_test = [c.name for c in scene.test_cameras if c.name not in by_name]
+    if missing_test:
+        raise SceneFormatError(f"{path}: test views {missing_test[:5]} have no pose ({len(missing_test)} missing).")
+    missing_train = [c.name for c in scene.train_cameras if c.name not in by_name]
+    if missing_train:
+        log.warning("%s: %d train views have no pose and are skipped: %s", path, len(missing_train), missing_train[:5])
+    cameras = []
+    for scene_cam in scene.cameras:
+        cam = by_name.get(scene_cam.name)
+        if cam is None:
+            continue
+        if (cam.width, cam.height) != (scene_cam.width, scene_cam.height):
+            raise SceneFormatError(
+                f"{path}: frame {cam.name!r} is {cam.width}x{cam.height} but its image is {scene_cam.width}x{scene_cam.height}."
+            )
+        cam.split = scene_cam.split  # the scene owns the split
+        cameras.append(cam)
+    return cameras

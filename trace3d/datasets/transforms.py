@@ -31,6 +31,10 @@ relative to the JSON's folder (absolute paths are kept).
   in NeRF practice); nerfstudio's ``train_filenames`` / ``test_filenames`` (``val_filenames`` when there
   is no test list) when the file has them; otherwise positions 0, n, 2n ... are test views
   (n = ``test_every``).  ``frame_stride`` keeps every k-th frame of each split file.
+* **Missing images**: a frame whose image file does not exist is skipped (published captures often
+  list more frames than they ship), with one warning naming how many and the first three; the import
+  is refused only when fewer than ``min_images`` frames keep an image. Test positions count the kept
+  frames.
 * **Images**: RGBA (Blender) is composited over ``background`` (white by default, the NeRF-synthetic
   convention); images are shrunk to ``max_side`` (area averaging, the intrinsics per axis).  Frame names
   are the file stems, or the relative paths with ``/`` -> ``_`` when stems repeat (Blender's
@@ -82,7 +86,7 @@ class TransformsParams:
         test_every: without a split in the file, every n-th frame (positions 0, n, 2n ...) is a test
             view; 0 = all train.
         frame_stride: keep every k-th frame of each split file (1 = all).
-        min_images: fewer frames than this is refused.
+        min_images: fewer frames than this (listed, or with an existing image) is refused.
     """
 
     max_side: int = 0
@@ -199,6 +203,10 @@ def _split_lists(data: dict, path: Path) -> dict[str, str] | None:
     return out
 
 
+class MissingImage(Trace3DError):
+    """A frame's image file does not exist (:func:`existing_images` skips such frames)."""
+
+
 def resolve_image(frame: RawFrame) -> Path:
     """The image file of a frame: ``file_path`` relative to its JSON (an extension is tried when absent)."""
     where = f"{frame.json_path}: frame {frame.index}"
@@ -214,8 +222,33 @@ def resolve_image(frame: RawFrame) -> Path:
         candidate = path.with_name(path.name + ext)
         if candidate.is_file():
             return candidate
-    raise Trace3DError(f"{where}: image {file_path!r} is missing (looked for {path} with and without "
+    raise MissingImage(f"{where}: image {file_path!r} is missing (looked for {path} with and without "
                        f"{'/'.join(TRY_EXTENSIONS[:3])}).")
+
+
+def existing_images(frames: list[RawFrame], json_path: Path, min_images: int) -> tuple[list[RawFrame], list[Path]]:
+    """The frames whose image file exists, and those files; the others are skipped, named in one log line.
+
+    Published captures often list more frames than they ship images for. Refused (one sentence) when fewer
+    than ``min_images`` frames keep an image; a frame without a ``file_path`` is refused as malformed.
+    """
+    kept, paths, missing = [], [], []
+    for frame in frames:
+        try:
+            paths.append(resolve_image(frame))
+            kept.append(frame)
+        except MissingImage:
+            missing.append(str(frame.entry["file_path"]))
+    if len(kept) < min_images:
+        raise Trace3DError(
+            f"{json_path}: only {len(kept)} of its {len(frames)} frames have an image file (missing: "
+            f"{', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''}), fewer than min_images {min_images}; "
+            "check the file paths or the images folder.")
+    if missing:
+        more = f" and {len(missing) - 3} more" if len(missing) > 3 else ""
+        log.warning("%s: skipped %d of %d frames whose image is missing: %s%s", json_path, len(missing), len(frames),
+                    ", ".join(missing[:3]), more)
+    return kept, paths
 
 
 def _number(frame: RawFrame, key: str, per_frame_only: bool = False):
@@ -382,7 +415,7 @@ def import_transforms(source: Path, out_dir: Path, params: TransformsParams) -> 
     frames, convention, files = read_frames(source, params)
     if len(frames) < params.min_images:
         raise Trace3DError(f"{files[0]}: holds {len(frames)} frame(s), fewer than min_images {params.min_images}.")
-    paths = [resolve_image(f) for f in frames]
+    frames, paths = existing_images(frames, files[0], params.min_images)
     names = _frame_names(paths, [f.json_path.parent for f in frames])
     world_to_cameras = []  # every pose is checked before any image is read
     for frame in frames:

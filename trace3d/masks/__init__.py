@@ -12,6 +12,9 @@ scores [M]:
 * ``sam`` (:mod:`.sam`): Segment Anything's automatic mask generator (optional package).
 * ``graph`` (:mod:`.graph`): nested multi-scale graph segmentation of each image; reads no ground
   truth, so it runs on a user's photos as on the synthetic rooms.
+* ``geometry`` (:mod:`.geometry`): nested masks from the fitted 2DGS scene's rendered depth and
+  normals (depth edges, concave creases) with colour; reads no ground truth, needs the fit
+  (``gaussians_dir``, ``poses_dir``).
 
 :func:`run_masks` writes ``<frame>.npz`` ("masks" bool [M, H, W], "scores" float32 [M]) for every
 frame (train and test) and ``masks.json`` (source, resolved parameters, masks per view, and when the
@@ -32,6 +35,7 @@ from ..io import atomic_file, write_json
 from ..params import from_mapping, to_dict
 from ..scene import Scene
 from .files import FilesParams, iter_file_masks, read_mask_npz
+from .geometry import GeometryParams, iter_geometry_masks
 from .graph import GraphParams, GraphPromptSegmenter, iter_graph_masks
 from .patches import PatchHierarchy, PatchParams, masks_to_patches, read_patches, run_patches
 from .nested import NestedParams, iter_nested_masks, nested_view_masks
@@ -48,12 +52,16 @@ from .simulate import (
 
 log = logging.getLogger(__name__)
 
-SOURCES = ("simulated", "files", "sam", "graph")
+SOURCES = ("simulated", "files", "sam", "graph", "geometry")
+# the sources that render the fitted scene (the masks step then needs --gaussians and --poses)
+FITTED_SOURCES = ("geometry",)
 SIMULATED_MODELS = ("one_level", "nested")
 
 __all__ = [
     "SOURCES",
+    "FITTED_SOURCES",
     "FilesParams",
+    "GeometryParams",
     "NestedParams",
     "SIMULATED_MODELS",
     "GraphParams",
@@ -96,11 +104,15 @@ def parse_params(source: str, params: dict | None):
         return from_mapping(SamParams, params, "masks params (sam)")
     if source == "graph":
         return from_mapping(GraphParams, params, "masks params (graph)")
+    if source == "geometry":
+        return from_mapping(GeometryParams, params, "masks params (geometry)")
     raise Trace3DError(f"unknown mask source {source!r}; expected one of {list(SOURCES)}.")
 
 
-def iter_masks(scene: Scene, source: str, params) -> Iterator[tuple[str, np.ndarray, np.ndarray]]:
-    """Yield (frame name, masks [M, H, W] bool, scores [M] float32) for every frame of ``scene``."""
+def iter_masks(scene: Scene, source: str, params, gaussians_dir: Path | None = None,
+               poses_dir: Path | None = None) -> Iterator[tuple[str, np.ndarray, np.ndarray]]:
+    """Yield (frame name, masks [M, H, W] bool, scores [M] float32) for every frame of ``scene``
+    (``gaussians_dir``, ``poses_dir``: the 2DGS fit and its poses, for the sources that render it)."""
     if source == "simulated":
         if isinstance(params, NestedParams):
             return iter_nested_masks(scene, params)
@@ -111,6 +123,8 @@ def iter_masks(scene: Scene, source: str, params) -> Iterator[tuple[str, np.ndar
         return iter_sam_masks(scene, params)
     if source == "graph":
         return iter_graph_masks(scene, params)
+    if source == "geometry":
+        return iter_geometry_masks(scene, params, gaussians_dir, poses_dir)
     raise Trace3DError(f"unknown mask source {source!r}; expected one of {list(SOURCES)}.")
 
 
@@ -121,14 +135,16 @@ def write_mask_npz(path: str | Path, masks: np.ndarray, scores: np.ndarray) -> N
             np.savez_compressed(fh, masks=np.asarray(masks, dtype=bool), scores=np.asarray(scores, np.float32))
 
 
-def run_masks(scene: Scene, out_dir: Path, source: str, params: dict) -> None:
-    """Compute the 2D masks of every frame of ``scene`` with ``source`` into ``out_dir``."""
+def run_masks(scene: Scene, out_dir: Path, source: str, params: dict, gaussians_dir: Path | None = None,
+              poses_dir: Path | None = None) -> None:
+    """Compute the 2D masks of every frame of ``scene`` with ``source`` into ``out_dir`` (``gaussians_dir``,
+    ``poses_dir``: the 2DGS fit and its poses, which the ``geometry`` source renders)."""
     typed = parse_params(source, params)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     counts: dict[str, int] = {}
     statuses = []
-    for name, masks, scores in iter_masks(scene, source, typed):
+    for name, masks, scores in iter_masks(scene, source, typed, gaussians_dir, poses_dir):
         cam = scene.camera(name)
         if masks.shape[1:] != (cam.height, cam.width) or masks.dtype != bool or scores.shape != (len(masks),):
             raise SceneFormatError(

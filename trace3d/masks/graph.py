@@ -216,7 +216,7 @@ def hierarchy_masks(hierarchy: np.ndarray, params: GraphParams) -> tuple[np.ndar
     """The masks of a nested hierarchy: every region of every level, finest level first.
 
     A region is skipped when its area is outside [min_area, max_area] (resolved for the image) or
-    when it equals the single finer region it was built from.
+    when it equals the single finer region it was built from (:func:`nested_masks`).
 
     Args:
         hierarchy: [K, H, W] int32 nested label maps (:func:`graph_hierarchy`).
@@ -225,16 +225,34 @@ def hierarchy_masks(hierarchy: np.ndarray, params: GraphParams) -> tuple[np.ndar
     """
     K, H, W = hierarchy.shape
     r = params.resolved(H, W)
+    return nested_masks(hierarchy, r["min_area"], r["max_area"])
+
+
+def nested_masks(hierarchy: np.ndarray, min_area: int, max_area: int,
+                 exclude: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Every region of every level of a nested hierarchy as a mask, finest level first.
+
+    A region is skipped when its area (pixels) is outside [min_area, max_area], when it equals the
+    single finer region it was built from, or when more than half of it lies in ``exclude``.
+
+    Args:
+        hierarchy: [K, H, W] int nested label maps; exclude: [H, W] bool, optional.
+    Returns:
+        masks [M, H, W] bool and level [M] int32 (the level each mask comes from).
+    """
+    K, H, W = hierarchy.shape
     masks, level_of = [], []
     for k in range(K):
         labels = hierarchy[k]
         n = int(labels.max()) + 1
         areas = np.bincount(labels.ravel(), minlength=n)
+        excluded = (np.bincount(labels[exclude].ravel(), minlength=n) if exclude is not None
+                    else np.zeros(n, np.int64))
         if k > 0:  # children per region: a region with one child repeats that child's mask
             pairs = np.unique(hierarchy[k - 1].ravel().astype(np.int64) * n + labels.ravel())
             children = np.bincount(pairs % n, minlength=n)
         for label in range(n):
-            if not r["min_area"] <= areas[label] <= r["max_area"]:
+            if not min_area <= areas[label] <= max_area or 2 * excluded[label] > areas[label]:
                 continue
             if k > 0 and children[label] == 1:
                 continue

@@ -99,6 +99,9 @@ SCENE_KINDS = ("synthetic", "replica", "nvos", "llff", "canonical", "images", "t
 # when it has instances/ (the rules look).
 GROUND_TRUTH = {"synthetic": "objects", "replica": "objects", "nvos": "nvos", "llff": None, "images": None,
                 "transforms": None, "canonical": "objects if instances/"}
+# The mask sources that render the 2DGS fit (the masks step then takes --gaussians and --poses, and its rule
+# depends on the fit); trace3d.masks.FITTED_SOURCES is the same tuple (tests/test_geometry_masks.py).
+FITTED_MASK_SOURCES = ("geometry",)
 # The simulated masks' default inconsistency (a room "already has" this level: rules/common.smk).
 SIMULATE_PARAMS = "trace3d.masks.simulate:SimulateParams"
 
@@ -121,9 +124,12 @@ STEPS: tuple[Step, ...] = (
          {"synthetic": ("trace3d.datasets.synthetic.params:SyntheticParams",),
           "importer": tuple(dict.fromkeys(IMPORTERS.values()))},
          rules=("scene",)),
-    Step("masks", "2D instance masks per view (simulated | files | sam | graph)",
-         (_SCENE, _OUT, arg("--source", default="simulated", choices=["simulated", "files", "sam", "graph"]),
-          params_arg()),
+    Step("masks", "2D instance masks per view (simulated | files | sam | graph | geometry)",
+         (_SCENE, _OUT, arg("--source", default="simulated", choices=["simulated", "files", "sam", "graph", "geometry"]),
+          params_arg(),
+          arg("--gaussians", help="geometry source: the 2DGS fit's folder (point_cloud.ply) whose depth and normals "
+                                  "it renders"),
+          _POSES),
          ("trace3d.masks:run_masks",), rules=("masks",)),
     Step("masks-stats", "statistics of a masks folder (calibration: docs/masks_calibration.md)",
          (_SCENE, arg("--masks", required=True, help="a `trace3d masks` output folder"),

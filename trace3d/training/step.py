@@ -20,46 +20,12 @@ from ..errors import ConfigError, SceneFormatError, Trace3DError
 from ..gaussians import GaussianModel, init_from_depth, init_from_points, init_random
 from ..io import write_json
 from ..params import from_mapping, to_dict
-from ..scene import Camera, Scene, read_cameras, require_known_poses
+from ..scene import Camera, Scene, read_cameras, read_pose_cameras, require_known_poses  # noqa: F401 (re-exported)
 from ..threads import torch_threads
 from .loop import TrainingDiverged, evaluate_views, fit, points_extent, scene_extent
 from .params import TrainParams
 
 log = logging.getLogger(__name__)
-
-
-def read_pose_cameras(poses_dir: Path, scene: Scene) -> list[Camera]:
-    """The cameras of ``poses_dir/cameras.json`` for the scene's frames, in the scene's frame order.
-
-    Raises if a test view is missing (the poses step must not drop evaluation views); train views
-    that SfM did not register are skipped with a warning.
-    """
-    path = poses_dir / "cameras.json"
-    if not path.is_file():
-        raise SceneFormatError(f"{path}: poses cameras.json is missing.")
-    by_name = {cam.name: cam for cam in read_cameras(path)}
-    unknown = sorted(set(by_name) - {c.name for c in scene.cameras})
-    if unknown:
-        raise SceneFormatError(f"{path}: frames {unknown[:5]} are not in the scene {scene.root}.")
-    missing_test = [c.name for c in scene.test_cameras if c.name not in by_name]
-    if missing_test:
-        raise SceneFormatError(f"{path}: test views {missing_test[:5]} have no pose ({len(missing_test)} missing).")
-    missing_train = [c.name for c in scene.train_cameras if c.name not in by_name]
-    if missing_train:
-        log.warning("%s: %d train views have no pose and are skipped: %s", path, len(missing_train), missing_train[:5])
-    cameras = []
-    for scene_cam in scene.cameras:
-        cam = by_name.get(scene_cam.name)
-        if cam is None:
-            continue
-        if (cam.width, cam.height) != (scene_cam.width, scene_cam.height):
-            raise SceneFormatError(
-                f"{path}: frame {cam.name!r} is {cam.width}x{cam.height} but its image is "
-                f"{scene_cam.width}x{scene_cam.height}."
-            )
-        cam.split = scene_cam.split  # the scene owns the split
-        cameras.append(cam)
-    return cameras
 
 
 def initial_model(scene: Scene, poses_dir: Path | None, train_cameras: Sequence[Camera], params: TrainParams,
