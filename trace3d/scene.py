@@ -548,7 +548,8 @@ def read_pose_cameras(poses_dir: Path, scene: "Scene") -> list[Camera]:
             continue
         if (cam.width, cam.height) != (scene_cam.width, scene_cam.height):
             raise SceneFormatError(
-                f"{path}: frame {cam.name!r} is {cam.width}x{cam.height} but its image is {scene_cam.width}x{scene_cam.height}."
+                f"{path}: frame {cam.name!r} is {cam.width}x{cam.height} but its image is "
+                f"{scene_cam.width}x{scene_cam.height}."
             )
         cam.split = scene_cam.split  # the scene owns the split
         cameras.append(cam)

@@ -125,7 +125,8 @@ STEPS: tuple[Step, ...] = (
           "importer": tuple(dict.fromkeys(IMPORTERS.values()))},
          rules=("scene",)),
     Step("masks", "2D instance masks per view (simulated | files | sam | graph | geometry)",
-         (_SCENE, _OUT, arg("--source", default="simulated", choices=["simulated", "files", "sam", "graph", "geometry"]),
+         (_SCENE, _OUT,
+          arg("--source", default="simulated", choices=["simulated", "files", "sam", "graph", "geometry"]),
           params_arg(),
           arg("--gaussians", help="geometry source: the 2DGS fit's folder (point_cloud.ply) whose depth and normals "
                                   "it renders"),
