@@ -6,25 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from trace3d.masks.patches import PatchHierarchy
+from test_merge_rules import hierarchy, stats_from  # the hand-built GIT arrays and patch hierarchies
 from trace3d.tracing.consistency import average_linkage, comembership, mask_vote, mask_vote_bruteforce
-from trace3d.tracing.git import GITStats
 from trace3d.tracing.merge import MergeParams, merge_all, source_histograms
 
 pytestmark = pytest.mark.usefixtures("single_numba_thread")
-
-
-def stats_from(labels) -> GITStats:
-    labels = np.asarray(labels, np.int32)
-    return GITStats(label=labels, prob=(labels >= 0).astype(np.float32), visibility=(labels >= 0).astype(np.float32),
-                    frames=[f"v{i}" for i in range(labels.shape[1])],
-                    num_labels=np.full(labels.shape[1], int(labels.max()) + 1, np.int64))
-
-
-def hierarchy(masks: list[list[int]]) -> PatchHierarchy:
-    """Patches 1..P, each listed with the masks containing it."""
-    count = 1 + max((m for ms in masks for m in ms), default=0)
-    return PatchHierarchy(masks, np.ones(len(masks), np.int64), np.ones(count, np.int64), np.ones(count, np.float32))
 
 
 def test_comembership_is_shared_masks_and_the_diagonal():
