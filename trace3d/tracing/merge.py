@@ -193,7 +193,7 @@ class VoteRule:
     uncovered: ``exclude``: a Gaussian whose argmax in view v is label 0 (no mask covers its pixels)
         has no vote in v, neither agreement nor disagreement (the released code's
         ``valid_weight_mask``); ``label``: label 0 is a label like any other, so two Gaussians that
-        are both uncovered in v agree (this project's behaviour before 2026-11-27).
+        are both uncovered in v agree (this project's earlier behaviour).
     min_gaussians: a patch takes part only when more than this many Gaussians trace to it.
     min_view_share: view v votes on (P_a, P_b) only when more than this share of G_a and of G_b
         have a vote there.
