@@ -223,7 +223,7 @@ def test_other_selections_and_the_segment_step(lifted_room, tmp_path):
         got[selection] = GaussianModel.read_ply(out / "object.ply")
         score, views, _ = _render_iou(scene, got[selection], candidates[0])
         assert views >= 1 and score > 0.6, (selection, score)
-    seg_out = tmp_path / "segment"
+    seg_out = tmp_path / "segmented"  # not the extract output of the same name above
     assert cli_main(["segment", "--scene", str(root / "scene"), "--gaussians", str(root / "gaussians"), "--lift",
                      str(root / "lift"), "--out", str(seg_out), "--params",
                      "{turntable_views: 2, turntable_size: 24}"]) == 0

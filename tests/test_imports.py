@@ -180,9 +180,10 @@ STACK = [
     ["lifting"],
     ["evaluation", "extract", "segment", "report"],
     ["steps"],
-    ["schema", "codehash", "bench"],
+    ["schema", "codehash", "bench", "progress"],
     ["cli"],
     ["warm"],
+    ["startup_probe"],
 ]
 
 

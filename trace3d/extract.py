@@ -409,7 +409,7 @@ def _tile(images: list[np.ndarray], height: int) -> np.ndarray:
 def object_mask(model, camera, keep: np.ndarray, near: float = 0.01) -> np.ndarray:
     """[H, W] bool: the pixels of ``camera`` where the Gaussians ``keep`` [N] bool hold more of the
     rendered blending weight than the others (occluders included)."""
-    from .evaluation.panoptic import instance_map
+    from .lifting.contrastive import instance_map
 
     return instance_map(model, camera, np.where(keep, 1, 2).astype(np.int64), 2, near) == 1
 

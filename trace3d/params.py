@@ -167,8 +167,9 @@ DECLARED_RANGES: dict[str, dict[str, str]] = {
         "threshold": "[0, 1]", "association_share": "(0, 1)", "min_view_share": "[0, 1)", "mask_weight": "[0, 1]",
         "min_gaussians": ">= 0", "min_views": ">= 0", "min_gaussian_views": ">= 0"},
     "trace3d.segment:SegmentParams": {
-        "samples": ">= 2", "min_share": "(0, 1)", "seed": ">= 0", "min_gaussians": ">= 1", "min_pixels": ">= 1",
-        "turntable_views": ">= 1", "turntable_size": ">= 8"},
+        "neighbours": ">= 1", "feature_threshold": "> 0", "samples": ">= 2", "min_share": "(0, 1)",
+        "min_size": "[0, 1)", "flat_ratio": "(0, 1)", "stuff_size": "(0, 1]", "seed": ">= 0",
+        "min_gaussians": ">= 1", "min_pixels": ">= 1", "turntable_views": ">= 1", "turntable_size": ">= 8"},
     "trace3d.lifting.contrastive:ContrastiveParams": {
         "dim": ">= 1", "iterations": ">= 1", "pixels": ">= 2", "pool_pixels": ">= 2", "lr": "> 0",
         "temperature": "> 0", "temperature_pos": "> 0", "temperature_neg": "> 0", "seed": ">= 0"},

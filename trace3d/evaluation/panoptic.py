@@ -351,22 +351,6 @@ def cluster_features(features: np.ndarray, weights: np.ndarray, samples: int, mi
     return FeatureClusters(instance, take[keep], labels[keep] + 1, k, int(count), int((~keep).sum()), m)
 
 
-def instance_map(model, camera, instance: np.ndarray, count: int, near: float = 0.01) -> np.ndarray:
-    """[H, W] int: per pixel the instance (1..K) with the largest rendered blending weight (the one-hot
-    [N, K] instance indicators rendered as features); 0 where no Gaussian covers the pixel."""
-    from ..lifting.contrastive import render_feature_map
-
-    if count == 0:
-        return np.zeros((camera.height, camera.width), np.int64)
-    onehot = np.zeros((instance.size, count), np.float32)
-    hit = instance > 0
-    onehot[np.flatnonzero(hit), instance[hit] - 1] = 1.0
-    rendered = render_feature_map(model, camera, onehot, near)
-    out = rendered.argmax(-1).astype(np.int64) + 1
-    out[rendered.max(-1) <= 0] = 0
-    return out
-
-
 def scene_truth(instances: np.ndarray, evaluated: dict[int, np.ndarray]) -> np.ndarray:
     """[H, W] int ground-truth instance map: each pixel's finest evaluated object (the evaluated object
     whose membership holds the pixel's leaf id and that no other evaluated object containing it lies
@@ -393,6 +377,8 @@ def _scene_score(model, instance: np.ndarray, count: int, gt, frames: Sequence[s
     """PQ^scene of the per-Gaussian ``instance`` [N] (1..count, 0 = none) over the views ``frames``;
     evaluated objects with fewer than ``min_pixels`` pixels over all the views together are void.
     Returns the score and the counts for metrics.json."""
+    from ..lifting.contrastive import instance_map
+
     preds, truths = [], []
     for f in frames:
         preds.append(instance_map(model, cameras[f], instance, count, near).ravel())

@@ -414,3 +414,17 @@ def write_history(path: Path, history: list[tuple[int, float]]) -> None:
         w = csv.writer(fh)
         w.writerow(["iteration", "loss"])
         w.writerows([(i, f"{v:.6f}") for i, v in history])
+
+
+def instance_map(model, camera, instance: np.ndarray, count: int, near: float = 0.01) -> np.ndarray:
+    """[H, W] int: per pixel the instance (1..K) with the largest rendered blending weight (the one-hot
+    [N, K] instance indicators rendered as features); 0 where no Gaussian covers the pixel."""
+    if count == 0:
+        return np.zeros((camera.height, camera.width), np.int64)
+    onehot = np.zeros((instance.size, count), np.float32)
+    hit = instance > 0
+    onehot[np.flatnonzero(hit), instance[hit] - 1] = 1.0
+    rendered = render_feature_map(model, camera, onehot, near)
+    out = rendered.argmax(-1).astype(np.int64) + 1
+    out[rendered.max(-1) <= 0] = 0
+    return out
