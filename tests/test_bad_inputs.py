@@ -543,6 +543,7 @@ def test_shipped_configs_pass_the_schema():
 RELATED_FIELDS = {
     "SyntheticParams": ("camera_height", "camera_radius", "clear_radius"),  # the room's size, one another
     "GraphParams": ("max_area",),  # > min_area
+    "GeometryParams": ("max_area",),  # > min_area
     "RefineParams": ("iterations",),  # >= every detect_at
 }
 

@@ -170,6 +170,13 @@ DECLARED_RANGES: dict[str, dict[str, str]] = {
         "neighbours": ">= 1", "feature_threshold": "> 0", "samples": ">= 2", "min_share": "(0, 1)",
         "min_size": "[0, 1)", "flat_ratio": "(0, 1)", "stuff_size": "(0, 1]", "seed": ">= 0",
         "min_gaussians": ">= 1", "min_pixels": ">= 1", "turntable_views": ">= 1", "turntable_size": ">= 8"},
+    "trace3d.masks.geometry:GeometryParams": {
+        "superpixel_scale": "> 0", "depth_edge": "> 0", "crease_cut": "> 0", "near": "> 0", "sigma": ">= 0",
+        "colour_weight": ">= 0", "depth_weight": ">= 0", "concave_weight": ">= 0", "convex_weight": ">= 0",
+        "normal_smooth": ">= 0", "crease_reach": ">= 0", "depth_reach": ">= 0", "colour_sigma": ">= 0",
+        "plane_tolerance": ">= 0", "plane_weight": ">= 0", "plane_discount": ">= 0", "max_planes": ">= 0",
+        "plane_iterations": ">= 0", "small_area": "[0, 1)", "min_area": "[0, 1)", "min_alpha": "[0, 1)",
+        "plane_min_share": "[0, 1)", "plane_member": "[0, 1)", "max_area": "(0, 1]", "reference_pixels": ">= 1"},
     "trace3d.lifting.contrastive:ContrastiveParams": {
         "dim": ">= 1", "iterations": ">= 1", "pixels": ">= 2", "pool_pixels": ">= 2", "lr": "> 0",
         "temperature": "> 0", "temperature_pos": "> 0", "temperature_neg": "> 0", "seed": ">= 0"},

@@ -501,7 +501,8 @@ def run_segment(scene, poses_dir: Path | None, gaussians_dir: Path, lift_dir: Pa
                 params: dict) -> dict:
     """Cluster a contrastive lift's Gaussians into objects and write them into ``out_dir`` (module
     docstring); returns segment.json's content."""
-    from .evaluation.panoptic import cluster_features, instance_map
+    from .evaluation.panoptic import cluster_features
+    from .lifting.contrastive import instance_map
     from .evaluation.pictures import turntable_strip, world_up
     from .lifting import load_lifted
     from .lifting.query import FeatureLifted
