@@ -419,7 +419,7 @@ def split_run(run):
 wildcard_constraints:
     preset="paper|official",
     masks=r"merged(all|hier|released)?(-t[0-9]+(\.[0-9]+)?)?|patches",
-    mtag=r"(-all|-hier|-released)?-t[0-9]+(\.[0-9]+)?",
+    mtag=r"(-all|-hier|-released)(-t[0-9]+(\.[0-9]+)?)?|-t[0-9]+(\.[0-9]+)?",
     variant=f"({'|'.join(VARIANTS)})" r"(\.s[0-9]+)?",
 
 
@@ -523,27 +523,16 @@ def refine_labels_arg(wildcards):
     return f"{folder}/instances" if wildcards.masks != "patches" else folder
 
 
-def merge_flavour_params(flavour):
-    """A params function for merge-<preset>-<flavour>: the preset's merge parameters with the flavour's keys."""
-
-    def inner(wildcards):
-        merged = json.loads(step_params(wildcards.scene, "merge"))
-        merged.setdefault("preset", wildcards.preset)
-        merged.update(MERGE_FLAVOURS[flavour])
-        return shlex.quote(json.dumps(merged, sort_keys=True))
-
-    return inner
-
-
 def merge_tag_params(wildcards):
-    """The merge step's parameters for merge-<preset>[-all|-hier]-t<threshold>: the preset's (with the
-    flavour's keys, MERGE_FLAVOURS) at that threshold."""
+    """The merge step's parameters for merge-<preset><mtag>: the preset's, with the flavour's keys
+    (MERGE_FLAVOURS) and the threshold the tag names, if any."""
     merged = json.loads(step_params(wildcards.scene, "merge"))
     merged.setdefault("preset", wildcards.preset)
-    flavour, _, threshold = wildcards.mtag.rpartition("-t")
+    flavour, _, threshold = wildcards.mtag.partition("-t")
     if flavour:
         merged.update(MERGE_FLAVOURS[flavour.lstrip("-")])
-    merged["threshold"] = float(threshold)
+    if threshold:
+        merged["threshold"] = float(threshold)
     return shlex.quote(json.dumps(merged, sort_keys=True))
 
 

@@ -53,44 +53,10 @@ rule merge:
         " --out {output:q} --params {params.p} > {log:q} 2>&1"
 
 
-# The same merge comparing every pair of patches of a view (variant merge_candidates: all_pairs), and the
-# hierarchical merge (variant merge_method: hierarchical): rules/common.smk's MERGE_FLAVOURS.
-use rule merge as merge_all with:
-    output:
-        directory(f"{RESULTS}/{{scene}}/merge-{{preset}}-all"),
-    params:
-        p=merge_flavour_params("all"),
-        code=step_code("merge"),
-    log:
-        f"{RESULTS}/logs/{{scene}}/merge-{{preset}}-all.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/{{scene}}/merge-{{preset}}-all.tsv"
-
-
-use rule merge as merge_hier with:
-    output:
-        directory(f"{RESULTS}/{{scene}}/merge-{{preset}}-hier"),
-    params:
-        p=merge_flavour_params("hier"),
-        code=step_code("merge"),
-    log:
-        f"{RESULTS}/logs/{{scene}}/merge-{{preset}}-hier.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/{{scene}}/merge-{{preset}}-hier.tsv"
-use rule merge as merge_released with:
-    output:
-        directory(f"{RESULTS}/{{scene}}/merge-{{preset}}-released"),
-    params:
-        p=merge_flavour_params("released"),
-        code=step_code("merge"),
-    log:
-        f"{RESULTS}/logs/{{scene}}/merge-{{preset}}-released.log",
-    benchmark:
-        f"{RESULTS}/benchmarks/{{scene}}/merge-{{preset}}-released.tsv"
-
-
-# The same merge at a threshold other than the preset's (variant merge_threshold), e.g. merge-paper-t0.4.
-use rule merge as merge_threshold with:
+# The merge's other forms, each in a folder of its own: merge-<preset><mtag>, mtag = -all (variant
+# merge_candidates: all_pairs), -hier (merge_method: hierarchical), -released (merge_method: released),
+# each optionally followed by -t<threshold> (merge_threshold); rules/common.smk's MERGE_FLAVOURS.
+use rule merge as merge_variant with:
     output:
         directory(f"{RESULTS}/{{scene}}/merge-{{preset}}{{mtag}}"),
     params:

@@ -161,7 +161,7 @@ STEPS: tuple[Step, ...] = (
          (_SCENE, arg("--git", required=True, help="trace step folder (git.npz)"),
           arg("--patches", required=True, help="patches folder (maps and hierarchy JSON)"), _OUT, params_arg()),
          ("trace3d.tracing.merge:run_merge",), {"merge": ("trace3d.tracing.merge:MergeParams",)},
-         rules=("merge", "merge_all", "merge_hier", "merge_released", "merge_threshold")),
+         rules=("merge", "merge_variant")),
     Step("refine", "GIT-guided density control: split / prune ambiguous Gaussians while retraining",
          (_SCENE, _POSES, arg("--gaussians", required=True, help="fitted scene folder (point_cloud.ply, config.json)"),
           arg("--labels", required=True, help="instance maps <frame>.png: merge/instances (or raw patches)"),

@@ -76,7 +76,7 @@ def mask_vote(hist: np.ndarray, pairs: np.ndarray, comember: np.ndarray | Sequen
         view) triples that voted.
     """
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
-    num_source, views, num_labels = hist.shape
+    num_labels = hist.shape[2]
     if not isinstance(comember, np.ndarray) or comember.ndim != 3:
         comember = stack_comembership(comember, num_labels)
     if len(pairs) == 0:
