@@ -527,6 +527,28 @@ def test_steps_are_deterministic_and_write_their_files(tiny_fitted, tmp_path):
     assert refine_a["test_psnr_before"] is not None and refine_a["split"] >= refine_a["rounds"][0]["split"]
 
 
+def test_bench_merge_vote_orders_the_votes(tiny_fitted, tmp_path):
+    """Per pair, same patch <= Jaccard of the mask sets <= common mask (each view's score is ordered so);
+    the classes split the pairs; the pooled figures are the one room's."""
+    from trace3d.bench.merge_vote import room_pairs, run_bench
+    from trace3d.cli import main
+
+    root, room = tiny_fitted, tmp_path / "room"
+    room.mkdir()
+    for name in ("scene", "patches"):
+        (room / name).symlink_to(root / name)
+    assert main(["trace", "--scene", str(root / "scene"), "--poses", str(root / "poses"), "--gaussians",
+                 str(root / "gaussians"), "--labels", str(root / "patches"), "--out", str(room / "trace-paper")]) == 0
+    pairs = room_pairs(room)
+    assert len(pairs["should"]) > 10 and pairs["should"].any()
+    assert (pairs["same_patch"] <= pairs["mask_jaccard"] + 1e-12).all()
+    assert (pairs["mask_jaccard"] <= pairs["common_mask"] + 1e-12).all()
+    assert not (pairs["should"] & pairs["group_mates"]).any() and (pairs["omega"] > 0).all()
+    result = run_bench([room])
+    assert result["pooled"] == result["rooms"]["room"]
+    assert result["pooled"]["pairs"] == len(pairs["should"])
+
+
 def test_merge_refuses_a_stale_trace(tiny_fitted, tmp_path):
     from trace3d.cli import main
 

@@ -202,6 +202,10 @@ def _cmd_bench(args: argparse.Namespace) -> None:
         from .bench.startup import run_bench
 
         result = run_bench(rounds=args.rounds, commands=["tables", "evaluate"] if args.quick else None)
+    elif args.name == "merge-vote":
+        from .bench.merge_vote import run_bench
+
+        result = run_bench([Path(r) for r in (args.room_list or [args.room])])
     elif args.name == "lift-forms":
         from .bench.lift import compare_forms
 
@@ -260,7 +264,7 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="benchmarks; print one JSON object")
     p.add_argument("name", choices=["render", "synthetic", "trace", "lift", "lift-forms", "fit", "fit-sweep",
-                                    "prompts", "evaluate", "startup"])
+                                    "prompts", "evaluate", "startup", "merge-vote"])
     p.add_argument("--room", default="results/room0",
                    help="trace, lift: a fitted room's results folder (scene/, poses/, gaussians/, patches/ or "
                         "merge-paper/instances); prompts: a room's results folder or canonical scene with ground "
@@ -280,7 +284,9 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
                         "median round per size, every round's time and, with --baseline, each round pair's "
                         "speedup and their median (default 1); evaluate: evaluations in a row (the first may "
                         "compile kernels); startup: fresh processes per step (the median is reported)")
-    p.add_argument("--rooms", dest="room_list", nargs="+", help="fit-sweep: rooms' results folders (scene/, poses/)")
+    p.add_argument("--rooms", dest="room_list", nargs="+",
+                   help="fit-sweep: rooms' results folders (scene/, poses/); merge-vote: traced synthetic rooms' "
+                        "results folders (scene/, patches/, trace-paper/), figures per room and pooled")
     p.add_argument("--budgets", nargs="+", default=["20000", "40000", "80000"],
                    help="fit-sweep: Gaussian budgets (max_gaussians)")
     p.add_argument("--scales", nargs="+", default=["0.05", "0.1"],

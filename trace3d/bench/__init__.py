@@ -6,6 +6,7 @@ imports this package, so a change to a benchmark reruns no step.
     fit.py        ``bench fit`` (phases of a training iteration, rounds, a baseline checkout side by side) and
                   ``bench fit-sweep`` (Gaussian budget x iterations against test PSNR)
     trace.py      ``bench trace``: GIT, merge and refinement on a fitted room
+    merge_vote.py ``bench merge-vote``: what the merges' votes separate, pair by pair, against the truth
     lift.py       ``bench lift`` (one contrastive iteration, sparse path vs rasterizer) and ``bench lift-forms``
     prompts.py    ``bench prompts``: how well each prompt source answers self-prompting's point prompts
     evaluate.py   ``bench evaluate``: the evaluate step of one (scene, variant, protocol), seconds per phase
