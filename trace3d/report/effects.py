@@ -57,6 +57,8 @@ EFFECTS = (
     ("all pairs vs coarser mask: full_all - full", "full_all", "full"),
     ("hierarchical merge (refine on): full_hier - no_merge", "full_hier", "no_merge"),
     ("hierarchical vs the paper's merge: full_hier - full", "full_hier", "full"),
+    ("hierarchical merge (refine off): no_refine_hier - both_off", "no_refine_hier", "both_off"),
+    ("hierarchical vs the paper's merge (refine off): no_refine_hier - no_refine", "no_refine_hier", "no_refine"),
     ("released merge (refine on): full_released - no_merge", "full_released", "no_merge"),
     ("merge at theta 0.4 (refine on): full_t04 - no_merge", "full_t04", "no_merge"),
     ("theta 0.4 vs 0.5: full_t04 - full", "full_t04", "full"),
