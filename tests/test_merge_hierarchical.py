@@ -107,5 +107,5 @@ def test_average_linkage_does_not_chain_where_union_find_does():
 def test_method_is_checked():
     with pytest.raises(ValueError, match="method"):
         MergeParams(method="votes")
-    assert MergeParams(method="hierarchical").threshold == pytest.approx(0.25)
+    assert MergeParams(method="hierarchical").threshold == pytest.approx(0.4)
     assert MergeParams(method="hierarchical").mask_weight == pytest.approx(0.25)
