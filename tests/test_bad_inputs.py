@@ -549,7 +549,7 @@ RELATED_FIELDS = {
 
 
 def _parameter_classes() -> list[type]:
-    from trace3d.schema import _nested, _registry, mask_sources
+    from trace3d.tooling.schema import _nested, _registry, mask_sources
 
     classes = []
     for group in [*_registry().values(), *mask_sources().values(), list(_nested().values())]:
@@ -568,7 +568,7 @@ def test_schema_refuses_what_the_dataclasses_refuse():
 
     from trace3d.errors import ConfigError
     from trace3d.params import from_mapping
-    from trace3d.schema import _nested, dataclass_schema
+    from trace3d.tooling.schema import _nested, dataclass_schema
 
     ints = [-3, -1, 0, 1, 2, 3, 4, 8, 20, 150, 151, 10**9]
     floats = [-1.0, -0.5, 0.0, 1e-9, 0.5, 1.0, 1.5, 2.0, 20.0, 151.0, 1e9]
@@ -605,17 +605,17 @@ def test_a_range_is_one_sentence_naming_the_key():
 
 
 def test_schema_file_is_generated_from_the_dataclasses():
-    """Fails when a parameter dataclass gains, loses or retypes a field without `python -m trace3d.schema`."""
-    from trace3d.schema import SCHEMA_PATH, schema_text
+    """Fails when a parameter dataclass gains, loses or retypes a field without `python -m trace3d.tooling.schema`."""
+    from trace3d.tooling.schema import SCHEMA_PATH, schema_text
 
-    assert SCHEMA_PATH.read_text() == schema_text(), "run `python -m trace3d.schema` to regenerate " \
+    assert SCHEMA_PATH.read_text() == schema_text(), "run `python -m trace3d.tooling.schema` to regenerate " \
                                                      "workflow/schemas/steps.schema.yaml"
 
 
 def test_schema_covers_every_dataclass_field():
     import dataclasses
 
-    from trace3d.schema import WORKFLOW_SET, _registry, mask_sources
+    from trace3d.tooling.schema import WORKFLOW_SET, _registry, mask_sources
 
     defs = yaml.safe_load((REPO / "workflow" / "schemas" / "steps.schema.yaml").read_text())["$defs"]
     for step, classes in _registry().items():
@@ -783,7 +783,7 @@ def test_killed_step_reruns_to_the_same_bytes(world):
 def test_compile_notice_and_eta_leave_out_the_compile(caplog, monkeypatch):
     from tqdm import tqdm
 
-    from trace3d import compiling
+    from trace3d.tooling import compiling
 
     monkeypatch.setattr(compiling, "_state", {"installed": True, "announced": False, "depth": 0, "start": 0.0,
                                               "seconds": 0.0})

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from trace3d import cputarget
+from trace3d.tooling import cputarget
 
 REPO = Path(__file__).resolve().parent.parent
 

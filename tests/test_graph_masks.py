@@ -278,7 +278,7 @@ def test_schema_matches_the_dataclasses():
     from trace3d.masks.graph import GraphPromptParams
     from trace3d.lifting.self_prompt import SelfPromptParams
 
-    # the step sections are generated from the dataclasses (python -m trace3d.schema, workflow/schemas/steps.schema.yaml)
+    # the step sections are generated from the dataclasses (python -m trace3d.tooling.schema, workflow/schemas/steps.schema.yaml)
     defs = yaml.safe_load((Path(__file__).resolve().parent.parent / "workflow/schemas/steps.schema.yaml").read_text())
     defs = defs["$defs"]
     section = defs["masks"]["properties"]["graph"]

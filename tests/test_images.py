@@ -23,7 +23,7 @@ from trace3d.datasets.synthetic import SyntheticParams, generate_scene
 from trace3d.errors import ConfigError, SceneFormatError, Trace3DError
 from trace3d.pointcloud import umeyama
 from trace3d.scene import Scene, read_cameras
-from trace3d.sfm import run_poses
+from trace3d.poses.step import run_poses
 
 NUM_VIEWS = 24
 RENDER_W, RENDER_H = 280, 210

@@ -248,7 +248,7 @@ def test_config_schema_knows_the_model_key():
     import yaml
 
     repo = Path(__file__).resolve().parent.parent
-    # the config's masks section is the generated steps schema's (python -m trace3d.schema)
+    # the config's masks section is the generated steps schema's (python -m trace3d.tooling.schema)
     schema = yaml.safe_load((repo / "workflow" / "schemas" / "steps.schema.yaml").read_text())["$defs"]["masks"]
     masks = {"source": "simulated", "simulated": {"model": "nested", "seed": 1}}
     jsonschema.validate(masks, schema)

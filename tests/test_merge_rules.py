@@ -13,8 +13,9 @@ from trace3d.masks.patches import PatchHierarchy
 from trace3d.params import from_mapping
 from trace3d.tracing.git import GITStats
 from trace3d.tracing.merge import (PLAIN, MergeParams, ViewMerge, VoteRule, candidate_pairs, conflict_areas,
-                                   merge_all, merge_view, pair_similarity_bruteforce, patch_owners, released_greedy,
-                                   released_ids, source_histograms, view_candidates, view_pair_quality, vote)
+                                   merge_all, merge_view, pair_similarity_bruteforce, released_greedy, released_ids,
+                                   source_histograms, view_candidates, vote)
+from trace3d.tracing.merge_quality import patch_owners, view_pair_quality
 
 pytestmark = pytest.mark.usefixtures("single_numba_thread")
 

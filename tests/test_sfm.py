@@ -1,4 +1,4 @@
-"""The ``poses`` step (trace3d.sfm): pycolmap SfM on a small rendered room, its failure modes,
+"""The ``poses`` step (trace3d.poses): pycolmap SfM on a small rendered room, its failure modes,
 the data set mode, and the CLI.
 
 The test scene is a textured box room ``[-3, 3] x [-1.5, 1.5] x [-3, 3]`` (y down, OpenCV-like)
@@ -21,7 +21,9 @@ from trace3d.cli import main as cli_main
 from trace3d.errors import ConfigError, Trace3DError
 from trace3d.pointcloud import read_points_ply, umeyama
 from trace3d.scene import Camera, Scene, write_cameras, write_frame
-from trace3d.sfm import PosesParams, params_from, run_poses, scene_has_reference_poses
+from trace3d.poses.align import scene_has_reference_poses
+from trace3d.poses.params import PosesParams, params_from
+from trace3d.poses.step import run_poses
 
 # ----------------------------------------------------------------------------------------------
 # test scenes

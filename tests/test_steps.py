@@ -1,4 +1,4 @@
-"""The step registry (trace3d.steps) and the code hashes derived from the import graph (trace3d.codehash)."""
+"""The step registry (trace3d.steps) and the code hashes derived from the import graph (trace3d.tooling.codehash)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from trace3d import codehash
+from trace3d.tooling import codehash
 from trace3d.steps import (BY_COMMAND, LIFT_METHODS, SIMULATE_PARAMS, STEPS, Variant, default_inconsistency,
                            fields_static, handler, lift_keys, lift_params_for, load_class, variant_defaults)
 
@@ -143,8 +143,9 @@ def test_closures_hold_the_imports_the_hand_lists_missed():
         assert "trace3d.training.kernels.adam" not in codehash.step_modules(command), command
     for command in ("tables", "summary", "reconstruction-table"):  # no step's handler, no benchmark, no schema
         modules = codehash.step_modules(command)
-        assert not [m for m in modules if m.startswith("trace3d.steps.") and m != BY_COMMAND[command].module]
-        assert "trace3d.schema" not in modules and not [m for m in modules if m.endswith(".bench")]
+        assert not [m for m in modules if m.startswith("trace3d.steps.")
+                    and m not in (BY_COMMAND[command].module, "trace3d.steps.registry")]
+        assert "trace3d.tooling.schema" not in modules and not [m for m in modules if m.endswith(".bench")]
 
 
 def test_relative_and_function_level_imports_are_followed(tmp_path):
@@ -242,7 +243,7 @@ def test_dry_run_reruns_the_lift_after_a_change_to_the_adam_kernel(tmp_path):
 def _package_copy(tmp_path):
     import shutil
 
-    from trace3d.codehash import PACKAGE
+    from trace3d.tooling.codehash import PACKAGE
 
     copy = tmp_path / "trace3d"
     shutil.copytree(PACKAGE, copy, ignore=shutil.ignore_patterns("__pycache__"))
@@ -252,7 +253,7 @@ def _package_copy(tmp_path):
 def test_the_numba_cache_folder_follows_the_kernels_code(tmp_path):
     """A kernel's cached machine code must not outlive a change to a module it imports (numba stamps a
     cache entry with the kernel's own file only): the cache folder's key covers the kernels' closure."""
-    from trace3d.codehash import kernel_cache_key, kernel_modules
+    from trace3d.tooling.codehash import kernel_cache_key, kernel_modules
 
     package = _package_copy(tmp_path)
     modules = kernel_modules(package)
@@ -270,7 +271,7 @@ def test_the_numba_cache_folder_follows_the_kernels_code(tmp_path):
 
 
 def test_key_numba_cache_is_idempotent_and_memoised(tmp_path):
-    from trace3d.codehash import key_numba_cache
+    from trace3d.tooling.codehash import key_numba_cache
 
     package = _package_copy(tmp_path)
     env = {"NUMBA_CACHE_DIR": str(tmp_path / "cache")}

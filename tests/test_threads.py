@@ -36,7 +36,7 @@ def test_cli_threads_reach_the_step(monkeypatch, tmp_path):
     seen = {}
 
     def fake_summary(args):
-        from trace3d.sfm import params_from
+        from trace3d.poses.params import params_from
 
         seen["torch"], seen["numba"] = torch.get_num_threads(), numba.get_num_threads()
         seen["omp"] = os.environ.get("OMP_NUM_THREADS")

@@ -15,9 +15,9 @@ from trace3d.masks.patches import PatchHierarchy
 from trace3d.render import trace, trace_by_backward
 from trace3d.scene import Camera
 from trace3d.tracing.git import GITStats, TraceParams, trace_views
-from trace3d.tracing.merge import (MergeParams, adjusted_rand_index, associate, merge_all, merge_view,
-                                   pair_similarity, pair_similarity_bruteforce, segmentation_quality,
-                                   source_histograms)
+from trace3d.tracing.merge import (MergeParams, associate, merge_all, merge_view, pair_similarity,
+                                   pair_similarity_bruteforce, source_histograms)
+from trace3d.tracing.merge_quality import adjusted_rand_index, segmentation_quality
 from trace3d.tracing.refine import (GENERATION, GITStrategy, RefineParams, ambiguity_scores, boundary_band,
                                     find_ambiguous, with_generation)
 from trace3d.training import split_gaussians

@@ -190,7 +190,8 @@ def test_unknown_poses_leave_placeholders_for_colmap(room, tmp_path):
     for cam in imported.cameras:
         np.testing.assert_array_equal(cam.world_to_camera, np.eye(4))
         np.testing.assert_allclose(cam.K, scene.camera(cam.name).K)
-    from trace3d.sfm import scene_has_reference_poses, scene_intrinsics_are_guessed
+    from trace3d.poses.align import scene_has_reference_poses
+    from trace3d.poses.colmap import scene_intrinsics_are_guessed
 
     assert not scene_has_reference_poses(imported)  # the poses step must run COLMAP (mode dataset refused)
     assert not scene_intrinsics_are_guessed(imported)  # ... from the file's intrinsics

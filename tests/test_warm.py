@@ -1,4 +1,4 @@
-"""trace3d.warm: every cached numba kernel of the package is warmed, each by one process, and a fresh
+"""trace3d.tooling.warm: every cached numba kernel of the package is warmed, each by one process, and a fresh
 process then finds all of them in the cache."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from trace3d import warm
+from trace3d.tooling import warm
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -33,7 +33,8 @@ def test_every_cached_kernel_has_recorded_signatures():
         every = warm.cached_dispatchers(module)
         missing += [f"{module}.{name}" for name in standalone if name not in manifest.get(module, {})]
         unknown += [f"{module}.{name}" for name in manifest.get(module, {}) if name not in every]
-    assert missing == [], f"cached kernels without recorded signatures (python -m trace3d.warm --record): {missing}"
+    assert missing == [], ("cached kernels without recorded signatures (python -m trace3d.tooling.warm --record): "
+                           f"{missing}")
     assert unknown == [], f"recorded kernels that are gone: {unknown}"
     for module, name, text in _entries(manifest):
         assert repr(warm.parse_signature(text)) == text, (module, name)
@@ -68,8 +69,8 @@ def test_units_keep_a_module_with_the_kernels_it_calls(tmp_path):
 def _warm(jobs: int) -> dict:
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(REPO)] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
-    result = subprocess.run([sys.executable, "-m", "trace3d.warm", "--jobs", str(jobs), "--json"], cwd=REPO, env=env,
-                            capture_output=True, text=True)
+    result = subprocess.run([sys.executable, "-m", "trace3d.tooling.warm", "--jobs", str(jobs), "--json"], cwd=REPO,
+                            env=env, capture_output=True, text=True)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "trace3d warm:" not in result.stderr, result.stderr[-3000:]  # no stale signature, no shared compile
     return json.loads(result.stdout.strip().splitlines()[-1])

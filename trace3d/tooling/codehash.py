@@ -29,7 +29,7 @@ import os
 import re
 from pathlib import Path
 
-PACKAGE = Path(__file__).resolve().parent
+PACKAGE = Path(__file__).resolve().parent.parent  # trace3d/
 ROOT = "trace3d"
 RUNNER = "trace3d.cli"
 # Functions of cli.py whose imports no step runs: the benchmarks, the registry's description, the run's progress and the
@@ -152,7 +152,7 @@ def closure(starts: tuple[str, ...], package: Path = PACKAGE) -> list[str]:
 
 def step_modules(command: str, package: Path = PACKAGE) -> list[str]:
     """The modules the step ``command`` runs: its handler module's closure and the runner's."""
-    from .steps import step
+    from ..steps import step
 
     return closure((step(command).module, RUNNER), package)
 
@@ -238,10 +238,10 @@ def key_numba_cache(environ=None, package: Path = PACKAGE) -> str | None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m trace3d.codehash [command ...]``: each step's hash and the modules it covers."""
+    """``python -m trace3d.tooling.codehash [command ...]``: each step's hash and the modules it covers."""
     import sys
 
-    from .steps import STEPS
+    from ..steps import STEPS
 
     commands = (sys.argv[1:] if argv is None else argv) or [s.command for s in STEPS]
     for command in commands:

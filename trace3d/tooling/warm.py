@@ -1,8 +1,8 @@
 """Fill numba's compile cache with every cached kernel of the package, split over processes.
 
-``python -m trace3d.warm [--jobs N]`` compiles (or, where the cache has it already, loads) every
+``python -m trace3d.tooling.warm [--jobs N]`` compiles (or, where the cache has it already, loads) every
 specialization the pipeline and the tests use of every ``cache=True`` numba function of ``trace3d``,
-into ``NUMBA_CACHE_DIR`` (in its subfolder for this code, :func:`trace3d.codehash.key_numba_cache`, as
+into ``NUMBA_CACHE_DIR`` (in its subfolder for this code, :func:`trace3d.tooling.codehash.key_numba_cache`, as
 every entry point does). A cold cache costs minutes of CPU (docs/performance.md): numba compiles a
 kernel on its first call, in whichever process first calls it, one kernel after another. Warming first spreads that over
 ``N`` processes (the kernel modules go to whichever process is free, largest first), and afterwards no
@@ -11,7 +11,7 @@ Snakemake, and on a cluster one run before submitting the jobs saves every job i
 (docs/cluster.md).
 
 Which functions: every module of the package whose source defines a numba kernel (the test that
-:func:`trace3d.codehash.kernel_modules` uses) is imported and its module-level numba dispatchers with a
+:func:`trace3d.tooling.codehash.kernel_modules` uses) is imported and its module-level numba dispatchers with a
 cache are taken. Which argument types: numba compiles one specialization per tuple of argument
 types, and those are known only from the calls, so they are recorded, from a cache that a full run of
 the suite filled, in ``kernel_signatures.json`` beside this file (``--record``). ``tests/test_warm.py``
@@ -43,7 +43,7 @@ from pathlib import Path
 
 from .codehash import PACKAGE, ROOT, kernel_definers
 
-MANIFEST = PACKAGE / "kernel_signatures.json"
+MANIFEST = Path(__file__).resolve().parent / "kernel_signatures.json"
 
 
 # ----------------------------------------------------------------------------------------------
@@ -313,7 +313,7 @@ def _jobs(text: str) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m trace3d.warm",
+        prog="python -m trace3d.tooling.warm",
         description="Compile (or load) every cached numba kernel of trace3d into NUMBA_CACHE_DIR "
                     "(its subfolder for this code), split over processes.")
     parser.add_argument("--jobs", type=_jobs, default=1, metavar="N",
@@ -321,9 +321,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true", help="print the whole report as one JSON object")
     parser.add_argument("--record", metavar="CACHE",
                         help="instead: write the signatures that CACHE (a keyed folder under NUMBA_CACHE_DIR that "
-                             "a full `make test` filled) holds into trace3d/kernel_signatures.json")
+                             "a full `make test` filled) holds into trace3d/tooling/kernel_signatures.json")
     args = parser.parse_args(argv)
-    from .cli import _entry_point_environment
+    from ..cli import _entry_point_environment
 
     _entry_point_environment()  # before numba is imported: the CPU target and the keyed cache folder
     if args.record:
@@ -361,7 +361,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{states.count('loaded')} already cached ({report['processes']} process(es), {wall:.0f} s)")
     for module, name, text, state in failed:
         print(f"trace3d warm: {module}.{name}{text}: {state} (a stale signature in {MANIFEST.name}: "
-              f"`python -m trace3d.warm --record` after a full test run)", file=sys.stderr)
+              f"`python -m trace3d.tooling.warm --record` after a full test run)", file=sys.stderr)
     for module, name in report["foreign"]:
         print(f"trace3d warm: {module}.{name} was compiled by a process that warmed another module "
               "(two processes may have compiled it at once)", file=sys.stderr)

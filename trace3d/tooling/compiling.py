@@ -76,8 +76,8 @@ def check_cache_folder() -> None:
         return
     import tempfile
 
-    from .errors import Trace3DError
-    from .io import os_error_sentence
+    from ..errors import Trace3DError
+    from ..io import os_error_sentence
 
     try:
         os.makedirs(cache, exist_ok=True)
