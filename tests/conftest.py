@@ -69,7 +69,7 @@ def _slurm_controller_down() -> bool:
 
 # Snakemake loads its SLURM executor plugin (pinned for the cluster profile) at every start, and the plugin
 # runs `scontrol show config` to word a help text: with SLURM's client installed but no controller running
-# that call waits ~9 s, at each of the suite's ~45 Snakemake runs. Then (and only then: tests/test_slurm.py
+# that call waits ~9 s, at each of the suite's ~45 Snakemake runs. Then (and only then: tests/workflow/test_slurm.py
 # skips without a controller) an `scontrol` that fails at once goes first on PATH for the test processes.
 if _slurm_controller_down():
     _stub = Path(tempfile.mkdtemp(prefix="trace3d-tests-bin-"))

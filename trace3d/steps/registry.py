@@ -11,7 +11,7 @@ Importing this module is cheap (no numpy, torch or numba; nothing else of the pa
 modules are loaded by name when their command runs (:func:`handler`), and dataclasses are named as
 ``"module:Class"`` strings. :func:`fields_static` reads a dataclass's fields and literal defaults from
 its source (``ast``, no import), which is how the Snakemake process learns them without importing torch;
-``tests/test_steps.py`` checks that the static reading and the imported dataclasses agree.
+``tests/cli/test_steps.py`` checks that the static reading and the imported dataclasses agree.
 
 A new step: a :class:`Step` in :data:`STEPS`, its handler ``trace3d/steps/<command>.py`` with
 ``run(args)`` (library imports inside the function, so that ``trace3d --help`` stays fast), and a rule
@@ -100,7 +100,7 @@ SCENE_KINDS = ("synthetic", "replica", "nvos", "llff", "canonical", "images", "t
 GROUND_TRUTH = {"synthetic": "objects", "replica": "objects", "nvos": "nvos", "llff": None, "images": None,
                 "transforms": None, "canonical": "objects if instances/"}
 # The mask sources that render the 2DGS fit (the masks step then takes --gaussians and --poses, and its rule
-# depends on the fit); trace3d.masks.FITTED_SOURCES is the same tuple (tests/test_geometry_masks.py).
+# depends on the fit); trace3d.masks.FITTED_SOURCES is the same tuple (tests/masks/test_geometry.py).
 FITTED_MASK_SOURCES = ("geometry",)
 # The simulated masks' default inconsistency (a room "already has" this level: rules/common.smk).
 SIMULATE_PARAMS = "trace3d.masks.simulate:SimulateParams"

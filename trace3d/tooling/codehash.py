@@ -15,7 +15,7 @@ Two edges are cut on purpose: the step modules are loaded by name (``importlib``
 the runner's closure holds no step; and in ``cli.py`` the imports of the benchmark handler and of the
 ``--help`` parameter listing (which imports every step's dataclasses) are not followed
 (:data:`NOT_RUN_BY_STEPS`), since no step runs them. An import by a name computed some other way
-would not be seen: the library makes none (``tests/test_steps.py`` checks the closures against what
+would not be seen: the library makes none (``tests/cli/test_steps.py`` checks the closures against what
 the steps load when run).
 """
 

@@ -14,7 +14,7 @@ Which functions: every module of the package whose source defines a numba kernel
 :func:`trace3d.tooling.codehash.kernel_modules` uses) is imported and its module-level numba dispatchers with a
 cache are taken. Which argument types: numba compiles one specialization per tuple of argument
 types, and those are known only from the calls, so they are recorded, from a cache that a full run of
-the suite filled, in ``kernel_signatures.json`` beside this file (``--record``). ``tests/test_warm.py``
+the suite filled, in ``kernel_signatures.json`` beside this file (``--record``). ``tests/tooling/test_warm.py``
 checks that every cached dispatcher has its signatures there (all but the ``inline="always"`` ones,
 which numba compiles on their own only when Python calls them directly), that no entry names a kernel
 that is gone, that every recorded signature still compiles, each in one process, and that a fresh
@@ -365,7 +365,7 @@ def main(argv: list[str] | None = None) -> int:
     for module, name in report["foreign"]:
         print(f"trace3d warm: {module}.{name} was compiled by a process that warmed another module "
               "(two processes may have compiled it at once)", file=sys.stderr)
-    return 0  # a stale or shared signature only costs a compile later (tests/test_warm.py fails on either)
+    return 0  # a stale or shared signature only costs a compile later (tests/tooling/test_warm.py fails on either)
 
 
 if __name__ == "__main__":
