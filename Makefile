@@ -7,7 +7,7 @@ CORES  ?= 2
 STAMP  := $(VENV)/.installed
 
 # Numba's compile cache lives inside the checkout, so only the first run in a clone compiles (and
-# `python -m trace3d.warm` does that first run over $(CORES) processes).
+# `python -m trace3d.tooling.warm` does that first run over $(CORES) processes).
 export NUMBA_CACHE_DIR := $(CURDIR)/.numba_cache
 export OMP_WAIT_POLICY := PASSIVE
 export PATH := $(CURDIR)/$(BIN):$(PATH)
@@ -28,7 +28,7 @@ $(STAMP): requirements.txt pyproject.toml
 # (the study's mask models, oracle and seeds, the official protocol, robustness) and the report again
 # over everything. `trace3d progress` (in another terminal, in this folder) says where the run is.
 reproduce: $(STAMP)
-	$(BIN)/python -m trace3d.warm --jobs $(CORES)
+	$(BIN)/python -m trace3d.tooling.warm --jobs $(CORES)
 	$(BIN)/snakemake --cores $(CORES) --show-failed-logs paper_tables
 	$(BIN)/snakemake --cores 1 paper_tables --report results/report.html
 	@cat results/tables/table2.md results/tables/table3.md
@@ -36,11 +36,11 @@ reproduce: $(STAMP)
 	$(BIN)/snakemake --cores $(CORES) --show-failed-logs reproduce
 	$(BIN)/snakemake --cores 1 reproduce --report results/report.html
 
-# The kernels are compiled first, over $(CORES) processes (trace3d/warm.py), so that no test compiles one;
+# The kernels are compiled first, over $(CORES) processes (trace3d/tooling/warm.py), so that no test compiles one;
 # then the suite runs on $(CORES) pytest-xdist workers, the whole-DAG runs taking turns on one of them
 # (their xdist_group; tests/conftest.py).
 test: $(STAMP)
-	$(BIN)/python -m trace3d.warm --jobs $(CORES)
+	$(BIN)/python -m trace3d.tooling.warm --jobs $(CORES)
 	$(BIN)/python -m pytest -q -n $(CORES) --dist loadgroup tests
 
 # ruff (its rules in pyproject.toml's [tool.ruff]) over the Python, then Snakemake's own lint of the rules

@@ -14,11 +14,11 @@ from snakemake.utils import validate
 PACKAGE = Path(workflow.basedir) / "trace3d"
 
 # The library's step registry (trace3d.steps: lift methods' keys, variant defaults) and the code hashes
-# derived from its import graph (trace3d.codehash): both read the checkout's sources statically, so
+# derived from its import graph (trace3d.tooling.codehash): both read the checkout's sources statically, so
 # the Snakemake process imports neither torch nor numba.
 if sys.path[:1] != [str(workflow.basedir)]:
     sys.path.insert(0, str(workflow.basedir))
-import trace3d.codehash as _codehash
+import trace3d.tooling.codehash as _codehash
 import trace3d.steps as _steps
 
 if Path(_steps.__file__).resolve().parent.parent != PACKAGE.resolve():
@@ -292,7 +292,7 @@ def step_params(scene, step):
 
 def step_code(command):
     """The code version of the ``trace3d <command>`` step: a hash of the library modules it imports,
-    found from the import graph (trace3d.codehash), so that Snakemake reruns the step when one changes."""
+    found from the import graph (trace3d.tooling.codehash), so that Snakemake reruns the step when one changes."""
     return _codehash.step_hash(command, PACKAGE)
 
 

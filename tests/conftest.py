@@ -6,9 +6,9 @@ imports the test modules, after this file.  An explicit value in the environment
 
 `make test` runs the suite on two pytest-xdist workers (``-n 2 --dist loadgroup``): each worker is a
 process of its own that runs this file, with its own temporary folders (``tmp_path``); they share the
-numba cache, which ``python -m trace3d.warm`` fills before pytest starts, so that the workers only
+numba cache, which ``python -m trace3d.tooling.warm`` fills before pytest starts, so that the workers only
 load kernels (two processes that save different specializations of one kernel at once can leave
-numba's index pointing one of them at the other's machine code: trace3d/warm.py).  The tests that run
+numba's index pointing one of them at the other's machine code: trace3d/tooling/warm.py).  The tests that run
 a whole DAG through Snakemake (each with
 ``--cores 2``, as a user's run; the SLURM test's cluster has 2 CPUs) are in the ``xdist_group``
 "whole_dag": one worker runs them one after another while the other runs the rest, so no two of them
@@ -37,9 +37,9 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(__file__).resolve().parent.parent / ".numba_cache"))
 # the CPU target the entry points compile for (512-bit vectors on AVX-512 CPUs), so that the tests
 # run the code the pipeline runs; imports llvmlite only, not numba
-from trace3d.cputarget import set_wide_vectors  # noqa: E402
-# compiled kernels in the cache's subfolder for this code (trace3d.codehash.key_numba_cache); stdlib only
-from trace3d.codehash import key_numba_cache  # noqa: E402
+from trace3d.tooling.cputarget import set_wide_vectors  # noqa: E402
+# compiled kernels in the cache's subfolder for this code (trace3d.tooling.codehash.key_numba_cache); stdlib only
+from trace3d.tooling.codehash import key_numba_cache  # noqa: E402
 
 set_wide_vectors()
 key_numba_cache()
@@ -69,7 +69,7 @@ def _slurm_controller_down() -> bool:
 
 # Snakemake loads its SLURM executor plugin (pinned for the cluster profile) at every start, and the plugin
 # runs `scontrol show config` to word a help text: with SLURM's client installed but no controller running
-# that call waits ~9 s, at each of the suite's ~45 Snakemake runs. Then (and only then: tests/test_slurm.py
+# that call waits ~9 s, at each of the suite's ~45 Snakemake runs. Then (and only then: tests/workflow/test_slurm.py
 # skips without a controller) an `scontrol` that fails at once goes first on PATH for the test processes.
 if _slurm_controller_down():
     _stub = Path(tempfile.mkdtemp(prefix="trace3d-tests-bin-"))

@@ -26,7 +26,7 @@ log = logging.getLogger("trace3d")
 # costs about 45 us each, so their workers spin for about half a millisecond before sleeping.
 # (The steps' own flag: Step.spin in trace3d.steps.)
 SPIN_COMMANDS = {(s.command, None) for s in STEPS if s.spin} | {("bench", "lift"), ("bench", "lift-forms")}
-# Commands that run no numba kernel: no compile listener (trace3d.compiling), so no numba import.
+# Commands that run no numba kernel: no compile listener (trace3d.tooling.compiling), so no numba import.
 NO_KERNEL_COMMANDS = {s.command for s in STEPS if not s.kernels} | {"describe", "progress", "verify"}
 
 
@@ -39,17 +39,17 @@ def _entry_point_environment() -> None:
     numba load their OpenMP runtime, which the step handlers import lazily, after this call.  An
     explicit value in the environment is respected.  Numba's compile cache is ``NUMBA_CACHE_DIR`` when
     set (the Makefile and the rules point it at the checkout's ``.numba_cache/``), in its subfolder named
-    by a hash of the kernels' code and everything they import (:func:`trace3d.codehash.key_numba_cache`:
+    by a hash of the kernels' code and everything they import (:func:`trace3d.tooling.codehash.key_numba_cache`:
     numba itself would load a kernel compiled before a helper in another file changed), else numba's
     default (``__pycache__`` beside the sources).
 
-    ``NUMBA_CPU_FEATURES`` with 512-bit vectors preferred on AVX-512 CPUs (:mod:`trace3d.cputarget`:
+    ``NUMBA_CPU_FEATURES`` with 512-bit vectors preferred on AVX-512 CPUs (:mod:`trace3d.tooling.cputarget`:
     LLVM's Intel models split the kernels' 16-lane loops into two 256-bit halves otherwise), unless the
     environment names a CPU target already.
     """
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    from .codehash import key_numba_cache
-    from .cputarget import set_wide_vectors
+    from .tooling.codehash import key_numba_cache
+    from .tooling.cputarget import set_wide_vectors
 
     set_wide_vectors()
     key_numba_cache()
@@ -121,7 +121,7 @@ def _cmd_verify(args: argparse.Namespace) -> None:
 
 
 def _cmd_describe(args: argparse.Namespace) -> None:
-    from .schema import registry_document as describe
+    from .tooling.schema import registry_document as describe
 
     info = describe()
     if args.json:
@@ -228,7 +228,7 @@ def _cmd_bench(args: argparse.Namespace) -> None:
 
 def _parameters_help(command: str) -> str:
     """The parameter list of ``trace3d <command> --help`` (imports the step's parameter dataclasses)."""
-    from .schema import help_text
+    from .tooling.schema import help_text
 
     return help_text(command)
 
@@ -243,7 +243,7 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
     parser.add_argument("--threads", type=int, metavar="N",
                         help="CPU threads for torch, numba, OpenMP and COLMAP (default: all cores)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="STEP")
-    if help_step is not None:  # `trace3d <step> --help` lists the step's parameters (trace3d.schema)
+    if help_step is not None:  # `trace3d <step> --help` lists the step's parameters (trace3d.tooling.schema)
         add_parser = sub.add_parser
 
         def add_with_parameters(name, **kwargs):
@@ -368,7 +368,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with limit_threads(args.threads):
             if args.command not in NO_KERNEL_COMMANDS:
-                from .compiling import check_cache_folder, compile_seconds, install
+                from .tooling.compiling import check_cache_folder, compile_seconds, install
 
                 check_cache_folder()
                 install()

@@ -2,7 +2,7 @@
 
 Each helper has its one home here; the renderer (:mod:`trace3d.render.projection`), the Gaussian
 container (:mod:`trace3d.gaussians`), the losses, the importers' depth initialisation
-(:mod:`trace3d.datasets.depth_init`) and the dataset-pose mode of :mod:`trace3d.sfm` import it.
+(:mod:`trace3d.datasets.depth_init`) and the dataset-pose mode of :mod:`trace3d.poses` import it.
 
 Conventions: OpenCV cameras (x right, y down, z forward), pixel (row i, column j) has its centre at
 (j + 0.5, i + 0.5) in the coordinates that ``K`` maps to, depth is camera z (not ray length).

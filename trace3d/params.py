@@ -149,14 +149,14 @@ def to_dict(params: Any) -> dict:
 
 
 # ----------------------------------------------------------------------------------------------
-# ranges: declared once per field, checked here and written into the config schema (trace3d.schema)
+# ranges: declared once per field, checked here and written into the config schema (trace3d.tooling.schema)
 # ----------------------------------------------------------------------------------------------
 #
 # A parameter dataclass declares the range of each numeric field in ``RANGES: ClassVar[dict]``: field ->
 # ``">= 0"``, ``"> 0"``, ``"<= 1"``, ``"< 1"``, an interval ``"[0, 1]"``, ``"(0, 1]"``, ``"[0, 1)"``,
 # ``"(0, 1)"``, or alternatives joined by ``|`` (``"0 | >= 2"``: 0, or 2 and more); a list field's range
 # holds for each item, and null (an optional field left to its preset) is always allowed.
-# :func:`from_mapping` refuses a value outside it (the step's one sentence) and :mod:`trace3d.schema`
+# :func:`from_mapping` refuses a value outside it (the step's one sentence) and :mod:`trace3d.tooling.schema`
 # writes it as JSON-schema bounds (the dry run's refusal), so the two cannot disagree.  Checks that
 # relate two fields (``initial_sh_degree <= sh_degree``) stay in the dataclass's ``__post_init__``.
 # A dataclass whose file is not this project's to change here declares its ranges in

@@ -1,8 +1,11 @@
-"""Contact-sheet previews of canonical scenes: a quick visual check of what an importer wrote.
+"""Pictures for a quick visual check: contact sheets of canonical scenes, and label maps and masks
+painted over their images (:func:`label_overlay`, :func:`mask_overlay`: the patches' and the merge's
+previews).
 
-One row per view (a few views spread over the sequence): the RGB image, the ground-truth instance
-map in random distinct colours (when the scene has ``instances/``) and the depth map (when it has
-``depth/``); each panel is titled with the frame name and split.
+The scene's contact sheet shows what an importer wrote, one row per view (a few views spread over the
+sequence): the RGB image, the ground-truth instance map in random distinct colours (when the scene has
+``instances/``) and the depth map (when it has ``depth/``); each panel is titled with the frame name and
+split.
 """
 
 from __future__ import annotations
@@ -46,6 +49,38 @@ def colorize_instances(ids: np.ndarray, seed: int = 0) -> np.ndarray:
     """[H, W] integer ids -> [H, W, 3] float RGB (0 black)."""
     ids = np.asarray(ids, dtype=np.int64)
     return instance_colors(int(ids.max(initial=0)), seed)[ids]
+
+
+def _colour_table(count: int, seed: int = 0) -> np.ndarray:
+    """[count + 1, 3] float colours in [0.15, 1], row 0 black."""
+    rng = np.random.default_rng(seed)
+    table = rng.uniform(0.15, 1.0, size=(count + 1, 3))
+    table[0] = 0.0
+    return table
+
+
+def mask_overlay(image: np.ndarray, masks: np.ndarray, alpha: float = 0.55) -> np.ndarray:
+    """[H, W, 3] float image with every mask painted in its own colour, finest on top.
+
+    Args:
+        image: [H, W, 3] uint8.
+        masks: [M, H, W] bool.
+    """
+    out = image.astype(np.float64) / 255.0
+    colours = _colour_table(len(masks), seed=1)[1:]
+    areas = masks.sum(axis=(1, 2))
+    for m in np.argsort(-areas, kind="stable"):  # largest first, so finer masks stay visible
+        out[masks[m]] = (1 - alpha) * out[masks[m]] + alpha * colours[m]
+    return out
+
+
+def label_overlay(image: np.ndarray, labels: np.ndarray, alpha: float = 0.7) -> np.ndarray:
+    """[H, W, 3] float image with label ids [H, W] in random colours (0 left dark)."""
+    colours = _colour_table(int(labels.max(initial=0)), seed=2)
+    base = image.astype(np.float64) / 255.0
+    out = (1 - alpha) * base + alpha * colours[labels]
+    out[labels == 0] = 0.3 * base[labels == 0]
+    return out
 
 
 def pick_views(scene: Scene, max_views: int) -> list:

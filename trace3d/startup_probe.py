@@ -34,7 +34,7 @@ def _first_line(command: str, spawn: float) -> dict:
     s = step(command)
     with limit_threads(None):
         if command not in cli.NO_KERNEL_COMMANDS:
-            from .compiling import install
+            from .tooling.compiling import install
 
             install()
         importlib.import_module(s.module)
@@ -51,8 +51,8 @@ def _kernels(command: str) -> dict:
     counts = {"loaded": 0, "compiled": 0, "failed": 0}
     wall, cpu = time.time(), time.process_time()
     if step(command).kernels:
-        from .codehash import step_modules
-        from .warm import read_manifest, warm_modules
+        from .tooling.codehash import step_modules
+        from .tooling.warm import read_manifest, warm_modules
 
         manifest = read_manifest()
         modules = [m for m in step_modules(command) if m in manifest]

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # A one-node SLURM cluster on this machine (slurmctld + slurmd on localhost, munge for authentication),
-# for tests/test_slurm.py and for trying workflow/profiles/slurm by hand. Run as root:
+# for tests/workflow/test_slurm.py and for trying workflow/profiles/slurm by hand. Run as root:
 #   bash tests/slurm/start.sh     # install (first time), configure, start; waits until the node is idle
 #   bash tests/slurm/stop.sh      # stop the daemons (the packages and the config stay)
 # A second call while the cluster is up changes nothing. Debian/Ubuntu (apt) only.

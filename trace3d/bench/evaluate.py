@@ -26,8 +26,8 @@ def run_bench(room: Path, variant: str = "full", params: dict | None = None, out
               repeats: int = 1) -> dict:
     """Evaluate ``room/variant/lift`` (``params``: the evaluate step's, default the standard protocol)
     ``repeats`` times; report every run's phases (the first may include numba compilation)."""
-    from .. import compiling
-    from ..cputarget import describe
+    from ..tooling import compiling
+    from ..tooling.cputarget import describe
     from ..evaluation.step import Phases, run_evaluate
 
     room = Path(room)

@@ -219,7 +219,7 @@ def run_bench(quick: bool = False, sizes: list[tuple[int, int]] | None = None,
     iterations, a smoke run)."""
     import numba
 
-    from ..cputarget import describe
+    from ..tooling.cputarget import describe
     from ..render.kernels.glue import fused_enabled
 
     gaussians = 5000 if quick else 80_000
@@ -355,7 +355,7 @@ def run_baseline(checkout: Path, sizes: list[tuple[int, int]] | None, iterations
     import subprocess
     import sys
 
-    from ..cputarget import set_here
+    from ..tooling.cputarget import set_here
 
     checkout = Path(checkout).resolve()
     # trace3d/bench/fit.py, or trace3d/training/bench.py in checkouts from before the harnesses moved

@@ -32,7 +32,7 @@ import numba
 import numpy as np
 import torch
 
-from ..cputarget import describe
+from ..tooling.cputarget import describe
 from ..render.core import render, trace
 from ..render.kernels.binning import Binning
 from ..render.kernels.forward import forward_kernel

@@ -9,7 +9,7 @@ the ``trace3d`` entry point does before the step's own work, and times it from t
                  the modules of the library functions it runs (:attr:`trace3d.steps.Step.entry`): what
                  is loaded when the step's entry function starts, i.e. when it can log its first line
     kernels      then every cached numba kernel of the step's code (its import closure,
-                 :func:`trace3d.codehash.step_modules`) at every recorded signature
+                 :func:`trace3d.tooling.codehash.step_modules`) at every recorded signature
                  (``kernel_signatures.json``) loaded from ``NUMBA_CACHE_DIR``: an upper bound on the
                  kernels the step calls, which numba loads lazily, at their first call
 
@@ -17,7 +17,7 @@ Wall seconds are from the spawn to the point; CPU seconds are the child's user +
 point (``time.process_time``, interpreter start included). The median round of each is reported, with
 the heavy libraries the first line has loaded (torch, numba, scipy, matplotlib, ...) and the machine's
 load average before and after (wall seconds depend on it; CPU seconds much less). A kernel the cache
-lacks is compiled (``compiled`` > 0; run ``python -m trace3d.warm`` first).
+lacks is compiled (``compiled`` > 0; run ``python -m trace3d.tooling.warm`` first).
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ def _median(rounds: list[dict], part: str, key: str) -> float:
 
 def run_bench(rounds: int = 3, commands: list[str] | None = None) -> dict:
     """Probe every pipeline command (or ``commands``) ``rounds`` times; medians per command."""
-    from ..cputarget import describe
+    from ..tooling.cputarget import describe
     from ..errors import Trace3DError
 
     known = pipeline_commands()

@@ -27,7 +27,7 @@ frame name is the file name without its extension (so the stems must be unique).
 
   meta.json records, per frame, which one was used (``intrinsics``: ``params``, ``exif_35mm``,
   ``exif_focal_plane`` or ``guess``).  The ``poses`` step keeps such a focal length as the starting
-  value and lets COLMAP refine it (see :func:`trace3d.sfm.scene_intrinsics_are_guessed`).
+  value and lets COLMAP refine it (see :func:`trace3d.poses.colmap.scene_intrinsics_are_guessed`).
 """
 
 from __future__ import annotations

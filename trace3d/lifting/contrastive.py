@@ -46,7 +46,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from ..compiling import track as track_compile_time
+from ..tooling.compiling import track as track_compile_time
 from ..errors import Trace3DError
 from ..gaussians import GaussianModel
 from ..scene import Camera

@@ -35,12 +35,13 @@ from typing import Iterable, Sequence
 import cv2
 import numpy as np
 import torch
-from numba import njit, prange
 
 from ..errors import Trace3DError
 from ..gaussians import GaussianModel
 from ..scene import Camera, Scene
 from . import ObjectQuery
+from .kernels.query import (_add_masked_rows, _kernel_applies, _query_distances, _query_mask, _query_mask_objects,
+                            _query_mask_stack)
 
 log = logging.getLogger(__name__)
 
@@ -110,172 +111,6 @@ def query_distances(feature_map: np.ndarray, features: np.ndarray) -> np.ndarray
 def _query_distances_numpy(feature_map: np.ndarray, features: np.ndarray) -> np.ndarray:
     diff = feature_map[None] - features[:, None, None, :]
     return np.sqrt((diff * diff).sum(-1))
-
-
-# ----------------------------------------------------------------------------------------------
-# Distances to the query features as numba kernels: the evaluation asks for every training view's
-# mask of every object (63 views x 27 objects per variant on a default room), and numpy built an
-# [Q, H, W, D] difference array for each.  The kernels give numpy's values to the bit: the same
-# float32 differences and squares, their sum over D in numpy's pairwise order (``np.add.reduce``
-# over a contiguous axis: eight running sums for n >= 8, combined as ((r0 + r1) + (r2 + r3)) +
-# ((r4 + r5) + (r6 + r7)), then the n % 8 rest one by one; one running sum for n < 8), the same
-# correctly rounded square root (tested against numpy for several D, ties at the thresholds
-# included).
-# ----------------------------------------------------------------------------------------------
-
-_PAIRWISE_BLOCK = 128  # numpy's PW_BLOCKSIZE: longer sums are split in halves (not done here)
-
-
-def _kernel_applies(feature_map: np.ndarray, features: np.ndarray) -> bool:
-    return (isinstance(feature_map, np.ndarray) and feature_map.dtype == np.float32 and feature_map.ndim == 3
-            and feature_map.flags.c_contiguous and features.dtype == np.float32 and features.ndim == 2
-            and features.flags.c_contiguous and features.shape[1] == feature_map.shape[2]
-            and 0 < features.shape[1] <= _PAIRWISE_BLOCK)
-
-
-@njit(cache=True, inline="always")
-def _first_lanes(fmap, y, x, feats, k):
-    """The eight running sums of squares after the first eight dimensions (D >= 8), in scalars (an
-    np.empty(8) here was a heap allocation per pixel and query)."""
-    e0 = fmap[y, x, 0] - feats[k, 0]
-    e1 = fmap[y, x, 1] - feats[k, 1]
-    e2 = fmap[y, x, 2] - feats[k, 2]
-    e3 = fmap[y, x, 3] - feats[k, 3]
-    e4 = fmap[y, x, 4] - feats[k, 4]
-    e5 = fmap[y, x, 5] - feats[k, 5]
-    e6 = fmap[y, x, 6] - feats[k, 6]
-    e7 = fmap[y, x, 7] - feats[k, 7]
-    return e0 * e0, e1 * e1, e2 * e2, e3 * e3, e4 * e4, e5 * e5, e6 * e6, e7 * e7
-
-
-@njit(cache=True, inline="always")
-def _combine(lanes):
-    """numpy's pairwise combination of the eight running sums."""
-    r0, r1, r2, r3, r4, r5, r6, r7 = lanes
-    return ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
-
-
-@njit(cache=True, inline="always")
-def _finish(fmap, y, x, feats, k, lanes):
-    """The full sum of squares from :func:`_first_lanes`: the other dimensions in blocks of eight, the
-    eight sums combined pairwise, then the remainder one by one (numpy's order)."""
-    n = feats.shape[1]
-    r0, r1, r2, r3, r4, r5, r6, r7 = lanes
-    full = n - n % 8
-    for i in range(8, full, 8):
-        e0 = fmap[y, x, i] - feats[k, i]
-        e1 = fmap[y, x, i + 1] - feats[k, i + 1]
-        e2 = fmap[y, x, i + 2] - feats[k, i + 2]
-        e3 = fmap[y, x, i + 3] - feats[k, i + 3]
-        e4 = fmap[y, x, i + 4] - feats[k, i + 4]
-        e5 = fmap[y, x, i + 5] - feats[k, i + 5]
-        e6 = fmap[y, x, i + 6] - feats[k, i + 6]
-        e7 = fmap[y, x, i + 7] - feats[k, i + 7]
-        r0 += e0 * e0
-        r1 += e1 * e1
-        r2 += e2 * e2
-        r3 += e3 * e3
-        r4 += e4 * e4
-        r5 += e5 * e5
-        r6 += e6 * e6
-        r7 += e7 * e7
-    res = _combine((r0, r1, r2, r3, r4, r5, r6, r7))
-    for i in range(full, n):
-        e = fmap[y, x, i] - feats[k, i]
-        res += e * e
-    return res
-
-
-@njit(cache=True, inline="always")
-def _squared_distance(fmap, y, x, feats, k):
-    """sum over d of (fmap[y, x, d] - feats[k, d])^2 in float32, in numpy's pairwise order (D <= 128)."""
-    n = feats.shape[1]
-    if n < 8:
-        res = np.float32(0.0)
-        for d in range(n):
-            e = fmap[y, x, d] - feats[k, d]
-            res += e * e
-        return res
-    return _finish(fmap, y, x, feats, k, _first_lanes(fmap, y, x, feats, k))
-
-
-@njit(cache=True, inline="always")
-def _within(fmap, y, x, feats, k, t):
-    """sqrt(:func:`_squared_distance`) <= t, the same float32 operations, but a pixel is rejected after
-    the first eight dimensions when their eight running sums alone already exceed t: every later
-    operation adds a non-negative square and rounding is monotone, so the full sum is at least that
-    partial sum (the answer is exactly the full test's)."""
-    n = feats.shape[1]
-    if n < 8:
-        return np.sqrt(_squared_distance(fmap, y, x, feats, k)) <= t
-    lanes = _first_lanes(fmap, y, x, feats, k)
-    if np.sqrt(_combine(lanes)) > t:
-        return False
-    return np.sqrt(_finish(fmap, y, x, feats, k, lanes)) <= t
-
-
-@njit(parallel=True, cache=True)
-def _query_distances(fmap, feats, out):
-    """out[k, y, x] = |fmap[y, x] - feats[k]| (float32, numpy's values)."""
-    h, w, _ = fmap.shape
-    for y in prange(h):
-        for k in range(feats.shape[0]):
-            for x in range(w):
-                out[k, y, x] = np.sqrt(_squared_distance(fmap, y, x, feats, k))
-
-
-@njit(parallel=True, cache=True)
-def _query_mask(fmap, feats, thresholds, out):
-    """out[y, x] = any over k of |fmap[y, x] - feats[k]| <= thresholds[k] (the distances of
-    :func:`_query_distances`; a pixel stops at its first hit)."""
-    h, w, _ = fmap.shape
-    for y in prange(h):
-        for x in range(w):
-            hit = False
-            for k in range(feats.shape[0]):
-                if _within(fmap, y, x, feats, k, thresholds[k]):
-                    hit = True
-                    break
-            out[y, x] = hit
-
-
-@njit(parallel=True, cache=True)
-def _query_mask_stack(stack, feats, thresholds, out):
-    """:func:`_query_mask` of every view of ``stack`` [V, H, W, D] into ``out`` [V, H, W] in one call
-    (one parallel launch per object instead of one per view: on a loaded machine each launch waits for
-    both threads to be scheduled)."""
-    v, h, w, _ = stack.shape
-    for vy in prange(v * h):
-        i = vy // h
-        y = vy - i * h
-        fmap = stack[i]
-        for x in range(w):
-            hit = False
-            for k in range(feats.shape[0]):
-                if _within(fmap, y, x, feats, k, thresholds[k]):
-                    hit = True
-                    break
-            out[i, y, x] = hit
-
-
-@njit(parallel=True, cache=True)
-def _query_mask_objects(fmap, feats, thresholds, starts, out):
-    """:func:`_query_mask` of several objects' query points at one view in one call: object ``o`` has
-    the points ``starts[o]:starts[o + 1]`` of ``feats`` [sum Q_o, D] and ``thresholds``; ``out`` is
-    [O, H, W] (the evaluation's pass asks every object's mask at each view; one parallel launch per
-    view)."""
-    o_count = out.shape[0]
-    h, w, _ = fmap.shape
-    for oy in prange(o_count * h):
-        o = oy // h
-        y = oy - o * h
-        for x in range(w):
-            hit = False
-            for k in range(starts[o], starts[o + 1]):
-                if _within(fmap, y, x, feats, k, thresholds[k]):
-                    hit = True
-                    break
-            out[o, y, x] = hit
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -428,28 +263,6 @@ def object_weights_numpy(weights: Sequence, masks: Sequence[np.ndarray]) -> np.n
         entries = np.repeat(inside, np.diff(w.indptr))
         fg += np.bincount(w.indices[entries], weights=w.weights[entries], minlength=n)
     return fg
-
-
-@njit(cache=True)
-def _add_masked_rows(inside, pixels, indptr, indices, weights, fg, view, touched, order):
-    """fg += the per-Gaussian sums over the rows whose pixel is ``inside`` (``view``, ``touched`` and
-    ``order`` are scratch: zero / False on entry and on return)."""
-    count = 0
-    for r in range(pixels.shape[0]):
-        if not inside[pixels[r]]:
-            continue
-        for e in range(indptr[r], indptr[r + 1]):
-            g = indices[e]
-            if not touched[g]:
-                touched[g] = True
-                order[count] = g
-                count += 1
-            view[g] += np.float64(weights[e])
-    for k in range(count):
-        g = order[k]
-        fg[g] += view[g]
-        view[g] = 0.0
-        touched[g] = False
 
 
 def summed_weights(weights: Iterable, num_gaussians: int | None = None) -> np.ndarray:

@@ -549,38 +549,6 @@ def run_patches(scene: Scene, masks_dir: Path, out_dir: Path, params: dict) -> N
 # ----------------------------------------------------------------------------------------------
 
 
-def _colour_table(count: int, seed: int = 0) -> np.ndarray:
-    """[count + 1, 3] float colours in [0.15, 1], row 0 black."""
-    rng = np.random.default_rng(seed)
-    table = rng.uniform(0.15, 1.0, size=(count + 1, 3))
-    table[0] = 0.0
-    return table
-
-
-def mask_overlay(image: np.ndarray, masks: np.ndarray, alpha: float = 0.55) -> np.ndarray:
-    """[H, W, 3] float image with every mask painted in its own colour, finest on top.
-
-    Args:
-        image: [H, W, 3] uint8.
-        masks: [M, H, W] bool.
-    """
-    out = image.astype(np.float64) / 255.0
-    colours = _colour_table(len(masks), seed=1)[1:]
-    areas = masks.sum(axis=(1, 2))
-    for m in np.argsort(-areas, kind="stable"):  # largest first, so finer masks stay visible
-        out[masks[m]] = (1 - alpha) * out[masks[m]] + alpha * colours[m]
-    return out
-
-
-def label_overlay(image: np.ndarray, labels: np.ndarray, alpha: float = 0.7) -> np.ndarray:
-    """[H, W, 3] float image with label ids [H, W] in random colours (0 left dark)."""
-    colours = _colour_table(int(labels.max(initial=0)), seed=2)
-    base = image.astype(np.float64) / 255.0
-    out = (1 - alpha) * base + alpha * colours[labels]
-    out[labels == 0] = 0.3 * base[labels == 0]
-    return out
-
-
 def write_preview(scene: Scene, masks_dir: Path, patches_dir: Path, path: Path, views: int) -> None:
     """Contact sheet (image | masks | patches) for ``views`` evenly spaced frames."""
     import matplotlib
@@ -589,6 +557,7 @@ def write_preview(scene: Scene, masks_dir: Path, patches_dir: Path, path: Path, 
     import matplotlib.pyplot as plt
 
     from ..io import atomic_file
+    from ..preview import label_overlay, mask_overlay
     from .files import read_mask_npz
 
     cams = scene.cameras

@@ -11,7 +11,7 @@ def run(args: argparse.Namespace) -> None:
     from ..scene import Scene
 
     scene = Scene.read(args.scene)
-    from ..sfm import run_poses
+    from ..poses.step import run_poses
 
     with atomic_dir(args.out) as tmp:
         run_poses(scene, tmp, load_params_arg(args.params))

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from ..compiling import track as track_compile_time
+from ..tooling.compiling import track as track_compile_time
 from ..errors import SceneFormatError
 from ..gaussians import GaussianModel
 from ..scene import Camera

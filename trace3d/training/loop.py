@@ -41,7 +41,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from ..compiling import track as track_compile_time
+from ..tooling.compiling import track as track_compile_time
 from ..errors import ConfigError, Trace3DError
 from ..gaussians import GaussianModel, all_finite
 from .kernels.losses import surface_depth

@@ -15,7 +15,7 @@
 (This package was ``render/kernels.py`` and ``render/glue_kernels.py``; every definition moved
 unchanged.)  Numba's cache does not see changes in another file (``tiles.py``, ``binning.py``, ``glue.py``,
 the thresholds in ``render/projection.py``); the entry points key the cache folder by the kernels' whole
-import closure instead (:func:`trace3d.codehash.key_numba_cache`, docs/architecture.md).
+import closure instead (:func:`trace3d.tooling.codehash.key_numba_cache`, docs/architecture.md).
 
 Kernel boundary (small on purpose, so that a CUDA back end can slot in behind it): per splat the
 kernels read
