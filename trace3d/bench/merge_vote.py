@@ -94,7 +94,8 @@ def room_pairs(room: Path) -> dict[str, np.ndarray]:
     from ..scene import Scene
     from ..tracing.consistency import comembership, mask_vote, stack_comembership
     from ..tracing.git import GITVisible
-    from ..tracing.merge import all_source_histograms, candidate_pairs, patch_owners
+    from ..tracing.merge import all_source_histograms, candidate_pairs
+    from ..tracing.merge_quality import patch_owners
 
     room = Path(room)
     git = room / "trace-paper" / "git.npz"

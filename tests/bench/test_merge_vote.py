@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from test_merge_rules import hierarchy
+from tests.tracing.test_merge_rules import hierarchy
 from trace3d.bench.merge_vote import _jaccard_comembership, binned_bayes, recall_at_precision
 
 
