@@ -44,7 +44,7 @@ from ...render.kernels.tiles import exp_taylor8
 # "reassoc" they did: numba optimises a parallel loop's body once on its own and once more inside the
 # kernel's module, a process that compiled the kernel runs the first and one that loads it from the
 # cache the second, and with reassociation the two summed the rows in other orders (30 of 4,096
-# features of a tiny lift differed in the last bits, issue 49; tests/test_kernel_cache.py).
+# features of a tiny lift differed in the last bits, issue 49; tests/tooling/test_kernel_cache.py).
 PAIR_MATH = {"nsz", "contract", "arcp"}
 
 
