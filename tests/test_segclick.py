@@ -150,6 +150,10 @@ def test_click_distances_match_their_twin_and_every_threshold(seed):
     np.testing.assert_array_equal(fast, slow)
     for t in (0.5, 1.5, 2.5, 4.0):
         np.testing.assert_array_equal(fast <= t, select_connected(feats, feats[seeds[0]], graph.edges, seeds, t))
+    # with a limit: the same below it, inf beyond
+    capped = click_distances(feats, feats[seeds[0]], graph.edges, seeds, 2.5)
+    np.testing.assert_array_equal(capped, click_distances_reference(feats, feats[seeds[0]], graph.edges, seeds, 2.5))
+    np.testing.assert_array_equal(capped, np.where(fast <= 2.5, fast, np.inf))
     # a point the graph never reaches from a seed: inf
     lonely = np.r_[means, [[50.0, 50.0, 50.0]]]
     g2 = gaussian_graph(lonely, np.arange(n + 1), 5)

@@ -312,12 +312,15 @@ class ClickScene:
             self.last_threshold = self.threshold
             return self._unseen_follow(select_connected(self.features[self.seen], query, self.graph.edges, local,
                                                         self.threshold))
-        reach = click_distances(self.features[self.seen], query, self.graph.edges, local)
+        # the largest threshold tried: a point farther from the click is never selected
+        limit = self.threshold * self.params.stable_max_scale
+        reach = click_distances(self.features[self.seen], query, self.graph.edges, local, limit)
         self.last_threshold = stable_threshold(reach, self.weights[self.seen], self.threshold, self.params)
         return self._unseen_follow(reach <= self.last_threshold)
 
 
-def click_distances(features: np.ndarray, query: np.ndarray, edges: np.ndarray, seeds: np.ndarray) -> np.ndarray:
+def click_distances(features: np.ndarray, query: np.ndarray, edges: np.ndarray, seeds: np.ndarray,
+                    limit: float = np.inf) -> np.ndarray:
     """[S] float64: for every point the least threshold t at which :func:`select_connected` (``features``,
     ``query``, ``edges``, ``seeds``, t) selects it (inf: at none), i.e. over the paths from a seed to the
     point along ``edges`` the least largest feature distance to ``query`` of the path's points: the
@@ -325,7 +328,8 @@ def click_distances(features: np.ndarray, query: np.ndarray, edges: np.ndarray, 
 
     Computed on a minimum spanning tree (which holds a least-bottleneck path between any two points) of
     the graph with edge weights max(d_a, d_b) and a root joined to every seed by d_seed, then down the tree
-    from the root. Twin: :func:`click_distances_reference`.
+    from the root. Points beyond ``limit`` (the edges to them are left out) get inf. Twin:
+    :func:`click_distances_reference`.
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
@@ -334,25 +338,28 @@ def click_distances(features: np.ndarray, query: np.ndarray, edges: np.ndarray, 
     d = np.sqrt(((np.asarray(features, np.float64) - np.asarray(query, np.float64)[None, :]) ** 2).sum(1))
     reach = np.full(count, np.inf)
     seeds = np.unique(np.asarray(seeds, np.int64))
+    seeds = seeds[d[seeds] <= limit]
     if not seeds.size:
         return reach
     edges = np.asarray(edges, np.int64).reshape(-1, 2)
+    weight = np.maximum(d[edges[:, 0]], d[edges[:, 1]])
+    edges, weight = edges[weight <= limit], weight[weight <= limit]
     rows = np.concatenate([edges[:, 0], np.full(seeds.size, count)])
     cols = np.concatenate([edges[:, 1], seeds])
     # + 1: the tree search drops zero weights (a weight of 0 is no edge); the same shift on every edge keeps the tree
-    cost = np.concatenate([np.maximum(d[edges[:, 0]], d[edges[:, 1]]), d[seeds]]) + 1.0
+    cost = np.concatenate([weight, d[seeds]]) + 1.0
     tree = minimum_spanning_tree(coo_matrix((cost, (rows, cols)), shape=(count + 1, count + 1)).tocsr())
     order, parent = breadth_first_order(tree, count, directed=False, return_predecessors=True)
-    out = np.full(count + 1, np.inf)
-    out[count] = -np.inf
+    out = [float("inf")] * count + [float("-inf")]
+    dist, up = d.tolist(), parent.tolist()
     for v in order[1:].tolist():  # parents come before their children
-        out[v] = max(out[parent[v]], d[v])
+        out[v] = max(out[up[v]], dist[v])
     reach[:] = out[:count]
     return reach
 
 
-def click_distances_reference(features: np.ndarray, query: np.ndarray, edges: np.ndarray,
-                              seeds: np.ndarray) -> np.ndarray:
+def click_distances_reference(features: np.ndarray, query: np.ndarray, edges: np.ndarray, seeds: np.ndarray,
+                              limit: float = np.inf) -> np.ndarray:
     """:func:`click_distances` by a least-bottleneck Dijkstra from the seeds (the twin)."""
     import heapq
 
@@ -366,6 +373,8 @@ def click_distances_reference(features: np.ndarray, query: np.ndarray, edges: np
     reach = [float("inf")] * count
     heap = []
     for s in set(int(v) for v in np.asarray(seeds).tolist()):
+        if d[s] > limit:
+            continue
         reach[s] = d[s]
         heap.append((d[s], s))
     heapq.heapify(heap)
@@ -375,7 +384,7 @@ def click_distances_reference(features: np.ndarray, query: np.ndarray, edges: np
             continue
         for u in nbrs[v]:
             nk = max(key, d[u])
-            if nk < reach[u]:
+            if nk < reach[u] and nk <= limit:
                 reach[u] = nk
                 heapq.heappush(heap, (nk, u))
     return np.asarray(reach, np.float64)
