@@ -6,14 +6,19 @@ default; SAGA-style, then 3D connectivity):
 1. **seeds**: the Gaussians that blend into the clicked pixel and its 8 neighbours (one trace of V);
    the *query* is the lifted feature of the seed with the most blending weight at the click (the
    surface clicked on; a rendered feature at an object's border blends two objects');
-2. **similar**: every Gaussian seen in training whose feature lies within the threshold of the query.
-   The threshold comes from the data (:func:`~trace3d.segment.feature_threshold`, times
-   ``threshold_scale``): where the feature distances of neighbours in 3D (mostly one object) and of
-   random pairs on two objects cross, the value ``trace3d segment`` joins segments with;
+2. **similar**: every Gaussian seen in training whose feature lies within the threshold t of the query;
 3. **connected**: of the similar Gaussians only those linked to a similar seed through edges of the
    Gaussians' kNN graph (``neighbours`` = 12, by centre) whose both ends are similar: another object
    with the same feature elsewhere in the scene (a twin never seen beside it) is not taken;
    Gaussians never seen in training follow their nearest seen neighbour.
+4. **the threshold**, from the data: the scene's distance between same-object and other-object features
+   (:func:`~trace3d.segment.feature_threshold` x ``threshold_scale``: where the feature distances of
+   neighbours in 3D and of random pairs on two objects cross, the value ``trace3d segment`` joins
+   segments with) is the centre of the click's own choice (``threshold_rule: stable``): steps 2-3 at
+   every t at once (:func:`click_distances`: the least t that selects each Gaussian) and t where the
+   selection grows least (:func:`stable_threshold`): an object's Gaussians join below the valley of their
+   distances to the query, its support only above it. ``threshold_rule: data`` uses that distance for
+   every click (the rule before), and ``threshold`` a number of yours.
 
 ``selection: segment`` returns the ``trace3d segment`` object the click falls in (the segment holding
 the most of the seeds' weight); ``selection: region`` is the step before issue 48: a 2D region grown
