@@ -355,11 +355,17 @@ def click_distances(features: np.ndarray, query: np.ndarray, edges: np.ndarray, 
     cost = np.concatenate([weight, d[seeds]]) + 1.0
     tree = minimum_spanning_tree(coo_matrix((cost, (rows, cols)), shape=(count + 1, count + 1)).tocsr())
     order, parent = breadth_first_order(tree, count, directed=False, return_predecessors=True)
-    out = [float("inf")] * count + [float("-inf")]
-    dist, up = d.tolist(), parent.tolist()
-    for v in order[1:].tolist():  # parents come before their children
-        out[v] = max(out[up[v]], dist[v])
-    reach[:] = out[:count]
+    # the largest d on each point's path to the root, by pointer jumping: value[v] holds the largest d from
+    # v up to (not including) up[v]; each round doubles the stretch, until every point's up is the root
+    reached = np.zeros(count + 1, bool)
+    reached[order] = True
+    up = np.where(reached, parent, count)
+    up[count] = count
+    value = np.append(np.where(reached[:count], d, np.inf), -np.inf)
+    while (up != count).any():
+        value = np.maximum(value, value[up])
+        up = up[up]
+    reach[:] = value[:count]
     return reach
 
 
