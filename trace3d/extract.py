@@ -6,14 +6,19 @@ default; SAGA-style, then 3D connectivity):
 1. **seeds**: the Gaussians that blend into the clicked pixel and its 8 neighbours (one trace of V);
    the *query* is the lifted feature of the seed with the most blending weight at the click (the
    surface clicked on; a rendered feature at an object's border blends two objects');
-2. **similar**: every Gaussian seen in training whose feature lies within the threshold of the query.
-   The threshold comes from the data (:func:`~trace3d.segment.feature_threshold`, times
-   ``threshold_scale``): where the feature distances of neighbours in 3D (mostly one object) and of
-   random pairs on two objects cross, the value ``trace3d segment`` joins segments with;
+2. **similar**: every Gaussian seen in training whose feature lies within the threshold t of the query;
 3. **connected**: of the similar Gaussians only those linked to a similar seed through edges of the
    Gaussians' kNN graph (``neighbours`` = 12, by centre) whose both ends are similar: another object
    with the same feature elsewhere in the scene (a twin never seen beside it) is not taken;
    Gaussians never seen in training follow their nearest seen neighbour.
+4. **the threshold**, from the data: the scene's distance between same-object and other-object features
+   (:func:`~trace3d.segment.feature_threshold` x ``threshold_scale``: where the feature distances of
+   neighbours in 3D and of random pairs on two objects cross, the value ``trace3d segment`` joins
+   segments with) is the centre of the click's own choice (``threshold_rule: stable``): steps 2-3 at
+   every t at once (:func:`click_distances`: the least t that selects each Gaussian) and t where the
+   selection grows least (:func:`stable_threshold`): an object's Gaussians join below the valley of their
+   distances to the query, its support only above it. ``threshold_rule: data`` uses that distance for
+   every click (the rule before), and ``threshold`` a number of yours.
 
 ``selection: segment`` returns the ``trace3d segment`` object the click falls in (the segment holding
 the most of the seeds' weight); ``selection: region`` is the step before issue 48: a 2D region grown
@@ -62,10 +67,22 @@ class ExtractParams:
             the clicked pixel's rendered feature, linked in 3D to the Gaussians under the click (module
             docstring); ``segment``: the ``trace3d segment`` object the click falls in; ``region``: the
             2D region grown from the click queried as a reference mask (the step before issue 48).
-        threshold: ``features``: the feature distance; ``None``: ``threshold_scale`` times the distance
-            that tells the lift's same-object pairs from other-object pairs
-            (:func:`~trace3d.segment.feature_threshold`).
-        threshold_scale: see ``threshold``.
+        threshold: ``features``: the feature distance, the same for every click; ``None``: chosen from the
+            data (``threshold_rule``).
+        threshold_rule: ``stable`` (default): per click, the most stable threshold of the click's connected
+            selection (:func:`stable_threshold`) around ``threshold_scale`` times the lift's same-object /
+            other-object distance (:func:`~trace3d.segment.feature_threshold`); ``data``: that distance itself,
+            the same for every click (the rule before).
+        threshold_scale: see ``threshold_rule``.
+        stable_min_scale, stable_max_scale, stable_steps: ``stable``: the thresholds tried, ``stable_steps`` + 1
+            geometric steps from ``stable_min_scale`` to ``stable_max_scale`` times the data's distance.
+        stable_span: ``stable``: a threshold's growth is measured from this many steps below it to this many
+            above it (the log of the ratio of the selection's training weights there).
+        stable_prior: ``stable``: added to the growth per unit of |log(threshold / data distance)|: among
+            equally stable thresholds the one nearer the data's distance wins.
+        stable_max_share: ``stable``: a threshold whose selection, ``stable_span`` steps above it, holds more
+            than this share of the scene's training weight is not an object's.
+        stable_min_gaussians: ``stable``: a threshold selecting fewer Gaussians is not an object's.
         neighbours: k of the kNN graph over the Gaussians' centres (``features``, ``segment``).
         pairs, seed: the random pairs (and their seed) of that threshold.
         threshold_steps: ``region``: thresholds tried when growing the region from the click.
@@ -86,7 +103,15 @@ class ExtractParams:
     point: tuple[float, ...] = ()
     selection: Literal["features", "segment", "region"] = "features"
     threshold: float | None = None
+    threshold_rule: Literal["stable", "data"] = "stable"
     threshold_scale: float = 1.0
+    stable_min_scale: float = 0.2
+    stable_max_scale: float = 3.0
+    stable_steps: int = 48
+    stable_span: int = 4
+    stable_prior: float = 0.5
+    stable_max_share: float = 0.5
+    stable_min_gaussians: int = 10
     neighbours: int = 12
     pairs: int = 100000
     seed: int = 0
@@ -107,6 +132,12 @@ class ExtractParams:
         if not self.threshold_scale > 0 or self.neighbours < 1 or self.pairs < 2:
             raise ValueError(f"threshold_scale must be > 0, neighbours >= 1 and pairs >= 2, got "
                              f"{self.threshold_scale}, {self.neighbours}, {self.pairs}")
+        if not 0 < self.stable_min_scale < self.stable_max_scale or not 1 <= self.stable_span < self.stable_steps // 2:
+            raise ValueError(f"stable_min_scale must be in (0, stable_max_scale) and stable_span in [1, stable_steps / 2), "
+                             f"got {self.stable_min_scale}, {self.stable_max_scale}, {self.stable_span}, {self.stable_steps}")
+        if self.stable_prior < 0 or not 0 < self.stable_max_share <= 1 or self.stable_min_gaussians < 1:
+            raise ValueError(f"stable_prior must be >= 0, stable_max_share in (0, 1] and stable_min_gaussians >= 1, got "
+                             f"{self.stable_prior}, {self.stable_max_share}, {self.stable_min_gaussians}")
         if self.threshold_steps < 4 or not 1 <= self.stability_delta < self.threshold_steps // 2:
             raise ValueError(f"threshold_steps must be >= 4 and stability_delta in [1, threshold_steps / 2), got "
                              f"{self.threshold_steps}, {self.stability_delta}")
@@ -228,6 +259,7 @@ class ClickScene:
             self.data_threshold = feature_threshold(self.features[self.seen], self.weights[self.seen], self.graph.edges,
                                            params.pairs, params.seed)
             self.threshold = params.threshold_scale * self.data_threshold
+        self.last_threshold = self.threshold  # the threshold of the latest click (``stable``: its own)
         self._segments = None
 
     def segments(self):
@@ -280,8 +312,125 @@ class ClickScene:
             # feature at an object's border blends two objects' features)
             query = self.features[seeds[int(np.argmax(seed_weights))]]
         inside = np.isin(seeds, self.seen)
-        return self._unseen_follow(select_connected(self.features[self.seen], query, self.graph.edges,
-                                                    np.searchsorted(self.seen, seeds[inside]), self.threshold))
+        local = np.searchsorted(self.seen, seeds[inside])
+        if self.params.threshold is not None or self.params.threshold_rule == "data":
+            self.last_threshold = self.threshold
+            return self._unseen_follow(select_connected(self.features[self.seen], query, self.graph.edges, local,
+                                                        self.threshold))
+        # the largest threshold tried: a point farther from the click is never selected
+        limit = self.threshold * self.params.stable_max_scale
+        reach = click_distances(self.features[self.seen], query, self.graph.edges, local, limit)
+        self.last_threshold = stable_threshold(reach, self.weights[self.seen], self.threshold, self.params)
+        return self._unseen_follow(reach <= self.last_threshold)
+
+
+def click_distances(features: np.ndarray, query: np.ndarray, edges: np.ndarray, seeds: np.ndarray,
+                    limit: float = np.inf) -> np.ndarray:
+    """[S] float64: for every point the least threshold t at which :func:`select_connected` (``features``,
+    ``query``, ``edges``, ``seeds``, t) selects it (inf: at none), i.e. over the paths from a seed to the
+    point along ``edges`` the least largest feature distance to ``query`` of the path's points: the
+    selection at t is ``click_distances(...) <= t`` for every t at once.
+
+    Computed on a minimum spanning tree (which holds a least-bottleneck path between any two points) of
+    the graph with edge weights max(d_a, d_b) and a root joined to every seed by d_seed, then down the tree
+    from the root. Points beyond ``limit`` (the edges to them are left out) get inf. Twin:
+    :func:`click_distances_reference`.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
+
+    count = len(features)
+    d = np.sqrt(((np.asarray(features, np.float64) - np.asarray(query, np.float64)[None, :]) ** 2).sum(1))
+    reach = np.full(count, np.inf)
+    seeds = np.unique(np.asarray(seeds, np.int64))
+    seeds = seeds[d[seeds] <= limit]
+    if not seeds.size:
+        return reach
+    edges = np.asarray(edges, np.int64).reshape(-1, 2)
+    weight = np.maximum(d[edges[:, 0]], d[edges[:, 1]])
+    edges, weight = edges[weight <= limit], weight[weight <= limit]
+    rows = np.concatenate([edges[:, 0], np.full(seeds.size, count)])
+    cols = np.concatenate([edges[:, 1], seeds])
+    # + 1: the tree search drops zero weights (a weight of 0 is no edge); the same shift on every edge keeps the tree
+    cost = np.concatenate([weight, d[seeds]]) + 1.0
+    tree = minimum_spanning_tree(coo_matrix((cost, (rows, cols)), shape=(count + 1, count + 1)).tocsr())
+    order, parent = breadth_first_order(tree, count, directed=False, return_predecessors=True)
+    # the largest d on each point's path to the root, by pointer jumping: value[v] holds the largest d from
+    # v up to (not including) up[v]; each round doubles the stretch, until every point's up is the root
+    reached = np.zeros(count + 1, bool)
+    reached[order] = True
+    up = np.where(reached, parent, count)
+    up[count] = count
+    value = np.append(np.where(reached[:count], d, np.inf), -np.inf)
+    while (up != count).any():
+        value = np.maximum(value, value[up])
+        up = up[up]
+    reach[:] = value[:count]
+    return reach
+
+
+def click_distances_reference(features: np.ndarray, query: np.ndarray, edges: np.ndarray, seeds: np.ndarray,
+                              limit: float = np.inf) -> np.ndarray:
+    """:func:`click_distances` by a least-bottleneck Dijkstra from the seeds (the twin)."""
+    import heapq
+
+    count = len(features)
+    d = [float(np.sqrt(((np.asarray(features[i], np.float64) - np.asarray(query, np.float64)) ** 2).sum()))
+         for i in range(count)]
+    nbrs: list[list[int]] = [[] for _ in range(count)]
+    for a, b in np.asarray(edges).reshape(-1, 2).tolist():
+        nbrs[a].append(b)
+        nbrs[b].append(a)
+    reach = [float("inf")] * count
+    heap = []
+    for s in set(int(v) for v in np.asarray(seeds).tolist()):
+        if d[s] > limit:
+            continue
+        reach[s] = d[s]
+        heap.append((d[s], s))
+    heapq.heapify(heap)
+    while heap:
+        key, v = heapq.heappop(heap)
+        if key > reach[v]:
+            continue
+        for u in nbrs[v]:
+            nk = max(key, d[u])
+            if nk < reach[u] and nk <= limit:
+                reach[u] = nk
+                heapq.heappush(heap, (nk, u))
+    return np.asarray(reach, np.float64)
+
+
+def stable_threshold(reach: np.ndarray, weights: np.ndarray, base: float, params: ExtractParams) -> float:
+    """The click's threshold (``threshold_rule: stable``): among the thresholds t_k = base x the geometric
+    steps from ``stable_min_scale`` to ``stable_max_scale``, the one where the click's selection
+    (``reach`` <= t, :func:`click_distances`) grows least, in the log of its training weight from
+    ``stable_span`` steps below to as many above, plus ``stable_prior`` x |log(t_k / base)|: an object's
+    Gaussians join at thresholds below the valley of their distances to the click and its support's
+    only above it, where the selection jumps. Thresholds whose selection holds fewer than
+    ``stable_min_gaussians`` Gaussians, or (``stable_span`` steps above) more than ``stable_max_share``
+    of the scene's weight, are not taken; without any, ``base``. Ties: the smallest.
+
+    Args:
+        reach: [S] :func:`click_distances`; weights: [S] training weights; base: the data's threshold.
+    """
+    p = params
+    grid = base * np.exp(np.linspace(np.log(p.stable_min_scale), np.log(p.stable_max_scale), p.stable_steps + 1))
+    order = np.argsort(reach, kind="stable")
+    sorted_reach = reach[order]
+    cum = np.concatenate([[0.0], np.cumsum(np.asarray(weights, np.float64)[order])])
+    count = np.searchsorted(sorted_reach, grid, side="right")
+    area = cum[count]
+    total = float(np.sum(weights))
+    span = p.stable_span
+    best, best_score = None, np.inf
+    for k in range(span, len(grid) - span):
+        if count[k] < p.stable_min_gaussians or area[k - span] <= 0 or area[k + span] > p.stable_max_share * total:
+            continue
+        score = np.log(area[k + span] / area[k - span]) + p.stable_prior * abs(np.log(grid[k] / base))
+        if score < best_score:
+            best, best_score = k, score
+    return float(base if best is None else grid[best])
 
 
 def select_connected(features: np.ndarray, query: np.ndarray, edges: np.ndarray, seeds: np.ndarray,
@@ -481,7 +630,8 @@ def run_extract(scene, poses_dir: Path | None, gaussians_dir: Path, lift_dir: Pa
         click = ClickScene(model.means.detach().double().numpy(), lifted.features, lifted.visibility(), p)
         seeds, seed_weights = click_seeds(click_weights(model, camera, x, y, near=lifted.params.near), x, y)
         keep = click.select(feature_map[y, x], seeds, seed_weights)
-        facts = {"threshold": click.threshold, "data_threshold": click.data_threshold, "seeds": int(seeds.size)}
+        facts = {"threshold": click.last_threshold, "threshold_rule": p.threshold_rule if p.threshold is None else "given",
+                 "data_threshold": click.data_threshold, "seeds": int(seeds.size)}
         if p.selection == "segment":
             seg = click.segments()
             label = int(np.bincount(seg.instance[keep]).argmax()) if keep.any() else 0

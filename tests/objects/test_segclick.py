@@ -3,10 +3,13 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
-from trace3d.extract import ClickScene, ExtractParams, select_connected, select_connected_reference
+from trace3d.extract import (ClickScene, ExtractParams, click_distances, click_distances_reference, select_connected,
+                             select_connected_reference, stable_threshold)
 from trace3d.segment import (SegmentParams, _find, _merge_edges, _merge_edges_reference, feature_threshold,
                              gaussian_graph, segment_gaussians)
 
@@ -131,6 +134,91 @@ def test_select_connected_matches_its_twin(seed):
     assert fast.sum() > 1
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_click_distances_match_their_twin_and_every_threshold(seed):
+    """The least threshold that selects each point (minimum-spanning-tree path) equals the Dijkstra twin's,
+    and ``<= t`` is :func:`select_connected`'s selection at every t."""
+    rng = np.random.default_rng(seed)
+    n = 700
+    means = rng.random((n, 3))
+    feats = rng.normal(0, 1, (n, 4))
+    graph = gaussian_graph(means, np.arange(n), 5)
+    seeds = rng.choice(n, 5, replace=False)
+    seeds[1] = seeds[0]  # a repeated seed counts once
+    fast = click_distances(feats, feats[seeds[0]], graph.edges, seeds)
+    slow = click_distances_reference(feats, feats[seeds[0]], graph.edges, seeds)
+    np.testing.assert_array_equal(fast, slow)
+    for t in (0.5, 1.5, 2.5, 4.0):
+        np.testing.assert_array_equal(fast <= t, select_connected(feats, feats[seeds[0]], graph.edges, seeds, t))
+    # with a limit: the same below it, inf beyond
+    capped = click_distances(feats, feats[seeds[0]], graph.edges, seeds, 2.5)
+    np.testing.assert_array_equal(capped, click_distances_reference(feats, feats[seeds[0]], graph.edges, seeds, 2.5))
+    np.testing.assert_array_equal(capped, np.where(fast <= 2.5, fast, np.inf))
+    # a point the graph never reaches from a seed: inf
+    lonely = np.r_[means, [[50.0, 50.0, 50.0]]]
+    g2 = gaussian_graph(lonely, np.arange(n + 1), 5)
+    g2_edges = g2.edges[(g2.edges != n).all(1)]
+    far = click_distances(np.r_[feats, feats[:1]], feats[seeds[0]], g2_edges, seeds)
+    assert np.isinf(far[n]) and np.isfinite(far[:n]).any()
+    assert np.isinf(click_distances(feats, feats[0], graph.edges, np.zeros(0, np.int64))).all()
+
+
+def _bench_scene(seed=0):
+    """A wall (3000 points, feature 20 from the rest) with a bench (1500 points, 2 m long) against it whose
+    lifted feature drifts by 6 from one end to the other (as a large object's features do when its masks
+    split it), noise 0.5 per channel in 8-D, and four far boxes with features 20 from everything. Returns
+    means, features, weights, truth (0 wall, 1 bench, 2-5 far boxes)."""
+    rng = np.random.default_rng(seed)
+    parts = [_box(rng, (0, 0, 1.25), (4.0, 0.01, 2.5), 3000), _box(rng, (0.0, 0.3, 0.3), (2.0, 0.5, 0.5), 1500)]
+    parts += [_box(rng, (-1.5 + k, 3.0, 0.3), (0.6, 0.6, 0.6), 800) for k in range(4)]
+    truth = np.concatenate([np.full(len(p), k) for k, p in enumerate(parts)])
+    means = np.concatenate(parts)
+    centres = np.zeros((6, 8))
+    centres[0, 0] = 20.0
+    for k in range(2, 6):
+        centres[k, k] = 20.0
+    features = centres[truth] + rng.normal(0, 0.5, (len(truth), 8))
+    bench = truth == 1
+    features[bench, 1] += 6.0 * (means[bench, 0] + 1.0) / 2.0
+    return means, features, rng.uniform(0.5, 1.5, len(truth)), truth
+
+
+def test_stable_threshold_takes_the_whole_object():
+    """A click at one end of the bench: the data's threshold (the same for every click) takes the half
+    whose features lie near the click's; the click's own, most stable threshold returns the whole bench
+    and nothing else (a toy scene where the answer is known)."""
+    means, features, weights, truth = _bench_scene()
+    on_end = np.flatnonzero((truth == 1) & (means[:, 0] < -0.9))[:5]
+    data = ClickScene(means, features, weights, ExtractParams(threshold_rule="data"))
+    assert data.select(features[on_end[0]], on_end)[truth == 1].mean() < 0.6
+    stable = ClickScene(means, features, weights, ExtractParams())
+    np.testing.assert_array_equal(stable.select(features[on_end[0]], on_end), truth == 1)
+    assert stable.last_threshold > stable.threshold
+    # a click on the wall (39 % of the scene's weight) returns the wall
+    on_wall = np.flatnonzero(truth == 0)[:5]
+    np.testing.assert_array_equal(stable.select(features[truth == 0].mean(0), on_wall), truth == 0)
+    # with stable_max_share under the wall's share no threshold qualifies: the data's is used
+    small = ClickScene(means, features, weights, ExtractParams(stable_max_share=0.2))
+    small.select(features[truth == 0].mean(0), on_wall)
+    assert small.last_threshold == small.threshold
+
+
+def test_stable_threshold_picks_the_plateau():
+    """The selection's weight as the threshold grows: 10 until 2, 100 from 2 to 8, the whole scene from 8:
+    the threshold is on the plateau, the nearest one to the data's distance among equally flat ones."""
+    reach = np.r_[np.full(10, 0.1), np.full(90, 2.0), np.full(900, 8.0)]
+    weights = np.ones(reach.size)
+    p = ExtractParams(stable_min_gaussians=5)
+    t = stable_threshold(reach, weights, 4.0, p)
+    assert 2.0 * 1.3 < t < 8.0 / 1.3, t
+    # the data's distance at 1: the 10 points' plateau (0.1 to 2) is as flat and nearer; with fewer than
+    # stable_min_gaussians there, the 100 points' plateau
+    assert 0.1 <= stable_threshold(reach, weights, 1.0, p) < 2.0
+    assert 2.0 <= stable_threshold(reach, weights, 1.0, dataclasses.replace(p, stable_min_gaussians=20)) < 8.0
+    # nothing qualifies (every selection is the whole scene): the data's distance
+    assert stable_threshold(np.zeros(50), np.ones(50), 3.0, p) == 3.0
+
+
 def test_graph_lists_each_pair_once():
     rng = np.random.default_rng(3)
     means = rng.random((50, 3))
@@ -149,6 +237,10 @@ def test_graph_lists_each_pair_once():
 def test_bad_segment_and_extract_params():
     with pytest.raises(ValueError, match="threshold_scale"):
         ExtractParams(threshold_scale=0)
+    with pytest.raises(ValueError, match="stable_span"):
+        ExtractParams(stable_span=30)
+    with pytest.raises(ValueError, match="stable_max_share"):
+        ExtractParams(stable_max_share=0)
     with pytest.raises(ValueError, match="feature_threshold"):
         SegmentParams(feature_threshold=-1.0)
     with pytest.raises(ValueError, match="flat_ratio"):

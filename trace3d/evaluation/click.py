@@ -58,7 +58,8 @@ def evaluate_clicks(lifted, gt, by_name: dict, params, min_pixels: int, near: fl
             keep = click.select(lifted.feature_map(camera)[y, x], seeds, weights)
         scores = [iou(object_mask(model, by_name[f], keep, near), gt.mask(oid, f)) for f in views]
         objects.append({"id": oid, "reference": query.reference, "point": [int(x), int(y)],
-                        "gaussians": int(keep.sum()), "iou": float(np.mean(scores)),
+                        "gaussians": int(keep.sum()), "threshold": float(click.last_threshold),
+                        "iou": float(np.mean(scores)),
                         "views": [{"frame": f, "iou": float(v)} for f, v in zip(views, scores)]})
     miou = float(np.mean([o["iou"] for o in objects])) if objects else None
     out = {"mIoU": miou, "objects": len(objects), "selection": params.selection, "threshold": click.threshold,
