@@ -9,7 +9,8 @@ used; ``selection: region``, the 2D region growing of before, uses the rendered 
 clicked view). The selection is scored at the object's novel-view (NVS) views, the test views that show it
 with at least ``min_pixels`` pixels: its mask there is where the selected Gaussians hold more of the
 rendered weight than the rest of the scene (:func:`~trace3d.extract.object_mask`, occluders
-included), against the ground-truth mask. An object's click IoU is the mean over its views; the
+included; read from the view's blend-order pixel weights, :func:`trace3d.render.weight_maps.set_mask`,
+the same bits, when the lifted scene keeps them at this ``near``), against the ground-truth mask. An object's click IoU is the mean over its views; the
 figure is the mean over the objects that have a reference and an NVS view (an empty selection scores
 0).
 """
@@ -37,9 +38,16 @@ def evaluate_clicks(lifted, gt, by_name: dict, params, min_pixels: int, near: fl
 
     from ..extract import ClickScene, _select_region, click_seeds, click_weights, object_mask
     from ..lifting.query import deepest_pixel, iou
+    from ..render.weight_maps import set_mask
 
     start = time.perf_counter()
     model = lifted.model
+    if hasattr(lifted, "blend_weights") and lifted.params.near == near:
+        def mask_of(camera, keep):
+            return set_mask(lifted.blend_weights(camera), keep)
+    else:
+        def mask_of(camera, keep):
+            return object_mask(model, camera, keep, near)
     click = ClickScene(model.means.detach().double().numpy(), lifted.features, lifted.visibility(),
                        dataclasses.replace(params, selection="features") if params.selection == "region" else params)
     objects = []
@@ -56,7 +64,7 @@ def evaluate_clicks(lifted, gt, by_name: dict, params, min_pixels: int, near: fl
         else:
             seeds, weights = click_seeds(click_weights(model, camera, x, y, near=near), x, y)
             keep = click.select(lifted.feature_map(camera)[y, x], seeds, weights)
-        scores = [iou(object_mask(model, by_name[f], keep, near), gt.mask(oid, f)) for f in views]
+        scores = [iou(mask_of(by_name[f], keep), gt.mask(oid, f)) for f in views]
         objects.append({"id": oid, "reference": query.reference, "point": [int(x), int(y)],
                         "gaussians": int(keep.sum()), "iou": float(np.mean(scores)),
                         "views": [{"frame": f, "iou": float(v)} for f, v in zip(views, scores)]})

@@ -44,6 +44,8 @@ class PixelWeights:
         weights: [E] float32 blending weight w_k(x) of each entry.
         num_gaussians: N.
         width, height: the view's size.
+        blend_order: each row's entries in blending order (front to back) rather than by Gaussian
+            (:func:`pixel_weights_blend_order`; what :mod:`~trace3d.render.weight_maps` needs).
     """
 
     pixels: np.ndarray
@@ -53,6 +55,7 @@ class PixelWeights:
     num_gaussians: int
     width: int
     height: int
+    blend_order: bool = False
 
     def __post_init__(self) -> None:
         self._fwd: Optional[Tensor] = None
@@ -279,4 +282,5 @@ def pixel_weights_blend_order(splats: Splats, camera: Camera, near: float = 0.01
     fill = indptr[:-1].copy()
     pixel_weights_kernel(*args, fill, splat, vals, True)
     gauss = seen.cpu().numpy()[splat].astype(np.int32)
-    return PixelWeights(np.arange(hw, dtype=np.int64), indptr, gauss, vals, n, camera.width, camera.height)
+    return PixelWeights(np.arange(hw, dtype=np.int64), indptr, gauss, vals, n, camera.width, camera.height,
+                        blend_order=True)
