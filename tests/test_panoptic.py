@@ -344,11 +344,13 @@ def test_the_pass_over_the_views_equals_the_all_views_at_once_path(tiny_features
 
 def test_the_pass_holds_one_view_at_a_time(tiny_features, monkeypatch):
     """Instrumented: however many views there are, the pass keeps at most one view's pixel weights
-    (and, with no map budget, one feature map) alive, and computes each training view's weights once."""
+    (and, with no map and weights budget, one feature map) alive, computes each view's weights once
+    and reads each view's feature map from them (no render)."""
     import weakref
 
     import trace3d.lifting.contrastive as contrastive
     import trace3d.render.pixel_weights as pw
+    import trace3d.render.weight_maps as weight_maps
 
     live = {"weights": 0, "maps": 0, "plain": 0}
     peak = {"weights": 0, "maps": 0, "plain": 0}
@@ -367,8 +369,9 @@ def test_the_pass_holds_one_view_at_a_time(tiny_features, monkeypatch):
     # the pass's weights (rows in blending order); the plain ones must not be computed at all
     monkeypatch.setattr(pw, "pixel_weights_blend_order", counted("weights", pw.pixel_weights_blend_order))
     monkeypatch.setattr(pw, "pixel_weights", counted("plain", pw.pixel_weights))
-    monkeypatch.setattr(contrastive, "render_feature_map", counted("maps", contrastive.render_feature_map))
-    lifted, queries, cameras, train = _lifted_and_queries(tiny_features, map_budget_mb=0)
+    monkeypatch.setattr(contrastive, "render_feature_map", counted("plain", contrastive.render_feature_map))
+    monkeypatch.setattr(weight_maps, "feature_map", counted("maps", weight_maps.feature_map))
+    lifted, queries, cameras, train = _lifted_and_queries(tiny_features, map_budget_mb=0, weights_budget_mb=0)
     one = lifted.with_query(max_queries=1)
     for q in queries:
         lifted.plan(q, cameras)
@@ -376,12 +379,12 @@ def test_the_pass_holds_one_view_at_a_time(tiny_features, monkeypatch):
     peak.update(weights=0, maps=0)
     calls.update(weights=0, maps=0)
     lifted.run_plan()
-    assert calls["weights"] == len(train) and peak["weights"] == 1
+    assert calls["weights"] == len(cameras) and peak["weights"] == 1
     assert calls["maps"] == len(cameras) and peak["maps"] == 1
     # the answers need no further view
     for q in queries:
         lifted.object_gaussians(q), one.object_gaussians(q), lifted.object_masks(q, cameras)
-    assert calls["weights"] == len(train) and calls["maps"] == len(cameras) and calls["plain"] == 0
+    assert calls["weights"] == len(cameras) and calls["maps"] == len(cameras) and calls["plain"] == 0
 
 
 def test_evaluate_metrics_are_those_of_the_all_views_at_once_path(tiny_features, tmp_path, monkeypatch):

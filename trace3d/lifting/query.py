@@ -515,7 +515,7 @@ class _Shared:
     traced object Gaussians and the stored masks by query-point content, and the queries planned for the
     next pass over the views."""
 
-    def __init__(self, map_budget_bytes: int, weights_budget_bytes: int = 256 * 2**20):
+    def __init__(self, map_budget_bytes: int, weights_budget_bytes: int):
         self.maps = _FeatureMaps(map_budget_bytes)
         self.weights = _FeatureMaps(weights_budget_bytes)
         self.total: np.ndarray | None = None
@@ -542,7 +542,7 @@ class FeatureLifted:
     """
 
     def __init__(self, model: GaussianModel, features: np.ndarray, train_cameras: Sequence[Camera],
-                 params: QueryParams | None = None, map_budget_mb: float = 256.0):
+                 params: QueryParams | None = None, map_budget_mb: float = 256.0, weights_budget_mb: float = 256.0):
         if features.shape[0] != len(model):
             raise Trace3DError(f"contrastive lift: {features.shape[0]} features for {len(model)} Gaussians; was it "
                                f"lifted on these Gaussians?")
@@ -551,9 +551,10 @@ class FeatureLifted:
         self.train_cameras = list(train_cameras)
         self.params = params or QueryParams()
         self.map_budget_mb = map_budget_mb
+        self.weights_budget_mb = weights_budget_mb
         self._queries: dict[str, QueryPoints] = {}
         self._gaussians: dict[str, np.ndarray] = {}
-        self._shared = _Shared(int(map_budget_mb * 2**20))
+        self._shared = _Shared(int(map_budget_mb * 2**20), int(weights_budget_mb * 2**20))
 
     def with_query(self, **overrides) -> "FeatureLifted":
         """The same lifted scene queried with other :class:`QueryParams` (e.g. ``max_queries=1``, the
@@ -561,7 +562,8 @@ class FeatureLifted:
         the traced objects and the planned pass with this one (they do not depend on the query
         parameters), so that queries planned on both are answered by one pass over the views."""
         params = dataclasses.replace(self.params, **overrides)
-        other = FeatureLifted(self.model, self.features, self.train_cameras, params, self.map_budget_mb)
+        other = FeatureLifted(self.model, self.features, self.train_cameras, params, self.map_budget_mb,
+                              self.weights_budget_mb)
         if params.near == self.params.near:
             other._shared = self._shared
         return other
@@ -586,8 +588,8 @@ class FeatureLifted:
     def blend_weights(self, camera: Camera):
         """The full-view pixel weights of ``camera`` with each row in blending order
         (:func:`~trace3d.render.pixel_weights.pixel_weights_blend_order`; what the feature map, the
-        evaluation's instance maps and object masks are read from), kept up to 256 MB (least recently
-        used dropped; the pass over the training views keeps none of its own)."""
+        evaluation's instance maps and object masks are read from), kept up to ``weights_budget_mb``
+        (least recently used dropped; the pass over the training views keeps none of its own)."""
         from ..render.pixel_weights import pixel_weights_blend_order
 
         w = self._shared.weights.get(camera.name)
@@ -622,19 +624,24 @@ class FeatureLifted:
     # --- the all-views-at-once path (the twin of the pass; it holds every training view) ----------
     def train_masks(self, q: QueryPoints) -> list[np.ndarray]:
         """[H, W] bool masks of ``q`` at every training view: :meth:`QueryPoints.mask` of each view's
-        feature map (the twin), in one kernel call over the training views' maps stacked (every
-        training view's map at once: for tests and twins); per view when the sizes differ or the
-        kernel does not apply."""
+        feature map rendered by the rasterizer (the twin of the maps read from pixel weights), in one
+        kernel call over the training views' maps stacked (every training view's map at once: for tests
+        and twins); per view when the sizes differ or the kernel does not apply."""
+        from .contrastive import render_feature_map
+
+        def rendered(c: Camera) -> np.ndarray:
+            return render_feature_map(self.model, c, self.features, self.params.near)
+
         cams = self.train_cameras
         if not cams or q.features.shape[0] == 0 or q.thresholds.dtype != np.float32 \
                 or len({(c.height, c.width) for c in cams}) != 1:
-            return [q.mask(self.feature_map(c)) for c in cams]
-        first = self.feature_map(cams[0])
+            return [q.mask(rendered(c)) for c in cams]
+        first = rendered(cams[0])
         if not _kernel_applies(first, q.features):
-            return [q.mask(self.feature_map(c)) for c in cams]
+            return [q.mask(rendered(c)) for c in cams]
         stack = np.empty((len(cams),) + first.shape, np.float32)
         for i, c in enumerate(cams):
-            stack[i] = self.feature_map(c)
+            stack[i] = first if i == 0 else rendered(c)
         out = np.empty(stack.shape[:3], np.bool_)
         _query_mask_stack(stack, q.features, q.thresholds, out)
         return list(out)
