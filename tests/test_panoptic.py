@@ -412,3 +412,28 @@ def test_evaluate_metrics_are_those_of_the_all_views_at_once_path(tiny_features,
         b = json.loads((tmp_path / f"{protocol}-streamed" / "metrics.json").read_text())
         a.pop("seconds"), b.pop("seconds")
         assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
+
+
+def test_segment_and_click_scores_share_one_knn_graph(tiny_features, tmp_path, monkeypatch):
+    """With both scores on, the evaluation builds the seen Gaussians' kNN graph once (the click scene's,
+    handed to the segment score) and writes the segment section it writes with a graph of its own."""
+    import trace3d.evaluation.step as step
+    import trace3d.segment as segment
+
+    calls = []
+    real = segment.gaussian_graph
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(segment, "gaussian_graph", counted)
+    shared = run(tiny_features, tmp_path / "shared")
+    assert len(calls) == 1 and shared["segment"]["segments"] > 0
+    calls.clear()
+    monkeypatch.setattr(step._ClickScene, "graph_for", lambda self, neighbours: None)
+    own = run(tiny_features, tmp_path / "own")
+    assert len(calls) == 2
+    for key in ("segment", "click"):
+        shared[key].pop("seconds"), own[key].pop("seconds")
+        assert json.dumps(shared[key], sort_keys=True) == json.dumps(own[key], sort_keys=True)

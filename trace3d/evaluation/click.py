@@ -25,18 +25,30 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 
-def evaluate_clicks(lifted, gt, by_name: dict, params, min_pixels: int, near: float = 0.01) -> dict:
+def click_scene(lifted, params):
+    """The :class:`~trace3d.extract.ClickScene` that :func:`evaluate_clicks` selects in (its kNN graph is
+    the segment score's too when their ``neighbours`` agree: the evaluation makes it once)."""
+    import dataclasses
+
+    from ..extract import ClickScene
+
+    return ClickScene(lifted.model.means.detach().double().numpy(), lifted.features, lifted.visibility(),
+                      dataclasses.replace(params, selection="features") if params.selection == "region" else params)
+
+
+def evaluate_clicks(lifted, gt, by_name: dict, params, min_pixels: int, near: float = 0.01, click=None) -> dict:
     """Click IoU of a feature-lifted scene (module docstring).
 
     Args:
         lifted: a :class:`~trace3d.lifting.query.FeatureLifted` (``model``, ``features``, ``visibility()``,
             ``feature_map``, ``view_weights``); gt: the evaluation's ground truth; by_name: frame -> camera;
             params: :class:`~trace3d.extract.ExtractParams` (``selection``, threshold, graph);
-            min_pixels: the protocol's ``min_pixels`` (recorded; the views are the ground truth's NVS views).
+            min_pixels: the protocol's ``min_pixels`` (recorded; the views are the ground truth's NVS views);
+            click: :func:`click_scene` of ``lifted`` and ``params`` if made already.
     """
     import dataclasses
 
-    from ..extract import ClickScene, _select_region, click_seeds, click_weights, object_mask
+    from ..extract import _select_region, click_seeds, click_weights, object_mask
     from ..lifting.query import deepest_pixel, iou
     from ..render.weight_maps import set_mask
 
@@ -48,8 +60,7 @@ def evaluate_clicks(lifted, gt, by_name: dict, params, min_pixels: int, near: fl
     else:
         def mask_of(camera, keep):
             return object_mask(model, camera, keep, near)
-    click = ClickScene(model.means.detach().double().numpy(), lifted.features, lifted.visibility(),
-                       dataclasses.replace(params, selection="features") if params.selection == "region" else params)
+    click = click_scene(lifted, params) if click is None else click
     objects = []
     for oid in gt.object_ids:
         query = gt.query(oid)

@@ -428,16 +428,18 @@ def evaluate_panoptic(lifted, gt, frames: Sequence[str], cameras: dict, samples:
     return out
 
 
-def evaluate_segments(lifted, gt, frames: Sequence[str], cameras: dict, segment_params, min_pixels: int) -> dict:
+def evaluate_segments(lifted, gt, frames: Sequence[str], cameras: dict, segment_params, min_pixels: int,
+                      graph=None) -> dict:
     """PQ^scene of the ``trace3d segment`` objects (:func:`~trace3d.segment.segment_gaussians`: the lifted
     features over the Gaussians' 3D kNN graph; stuff segments count as instances like the others, and
     on the rooms they lie on void walls and floors) over the views ``frames``; as :func:`evaluate_panoptic`
-    otherwise."""
+    otherwise. ``graph``: the seen Gaussians' kNN graph with ``segment_params.neighbours`` if made
+    already (the click score's)."""
     from ..segment import segment_gaussians
 
     start = time.perf_counter()
     seg = segment_gaussians(lifted.model.means.detach().double().numpy(), lifted.features, lifted.visibility(),
-                            segment_params)
+                            segment_params, graph)
     score, facts = _scene_score(lifted.model, seg.instance, seg.count, gt, frames, cameras, lifted.params.near,
                                 min_pixels, getattr(lifted, "blend_weights", None))
     out = {**score.to_json(), "segments": seg.count, "stuff": int(seg.stuff.sum()), "threshold": seg.threshold,
