@@ -54,12 +54,16 @@ def evaluate_clicks(lifted, gt, by_name: dict, params, min_pixels: int, near: fl
 
     start = time.perf_counter()
     model = lifted.model
-    if hasattr(lifted, "blend_weights") and lifted.params.near == near:
-        def mask_of(camera, keep):
-            return set_mask(lifted.blend_weights(camera), keep)
-    else:
-        def mask_of(camera, keep):
-            return object_mask(model, camera, keep, near)
+    # the views' weights that the lifted scene keeps (FeatureLifted: the pass's test views, while they fit
+    # its weights budget): a mask is read from them; a view whose weights are not kept is rendered (the
+    # loop visits each view once per object, and recomputing a dropped view's weights costs more than a
+    # two-channel render)
+    kept = getattr(getattr(lifted, "_shared", None), "weights", None) \
+        if getattr(getattr(lifted, "params", None), "near", None) == near else None
+
+    def mask_of(camera, keep):
+        weights = kept.get(camera.name) if kept is not None else None
+        return set_mask(weights, keep) if weights is not None else object_mask(model, camera, keep, near)
     click = click_scene(lifted, params) if click is None else click
     objects = []
     for oid in gt.object_ids:
