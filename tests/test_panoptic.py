@@ -437,3 +437,23 @@ def test_segment_and_click_scores_share_one_knn_graph(tiny_features, tmp_path, m
     for key in ("segment", "click"):
         shared[key].pop("seconds"), own[key].pop("seconds")
         assert json.dumps(shared[key], sort_keys=True) == json.dumps(own[key], sort_keys=True)
+
+
+def test_click_masks_from_kept_weights_equal_the_rendered_ones(tiny_features, tmp_path, monkeypatch):
+    """The click score reads a view's mask from the weights the lifted scene keeps; with no weights kept
+    it renders every mask (extract.object_mask) and writes the same section."""
+    import trace3d.lifting.query as query
+    import trace3d.render.weight_maps as weight_maps
+
+    calls = []
+    real = weight_maps.set_mask
+    monkeypatch.setattr(weight_maps, "set_mask", lambda *a: calls.append(1) or real(*a))
+    kept = run(tiny_features, tmp_path / "kept")["click"]
+    assert calls and kept["objects"] > 0
+    calls.clear()
+    init = query._Shared.__init__
+    monkeypatch.setattr(query._Shared, "__init__", lambda self, maps, weights: init(self, maps, 0))
+    rendered = run(tiny_features, tmp_path / "rendered")["click"]
+    assert not calls
+    kept.pop("seconds"), rendered.pop("seconds")
+    assert json.dumps(kept, sort_keys=True) == json.dumps(rendered, sort_keys=True)
