@@ -10,9 +10,9 @@ clicked view). The selection is scored at the object's novel-view (NVS) views, t
 with at least ``min_pixels`` pixels: its mask there is where the selected Gaussians hold more of the
 rendered weight than the rest of the scene (:func:`~trace3d.extract.object_mask`, occluders
 included; read from the view's blend-order pixel weights, :func:`trace3d.render.weight_maps.set_mask`,
-the same bits, when the lifted scene keeps them at this ``near``), against the ground-truth mask. An object's click IoU is the mean over its views; the
-figure is the mean over the objects that have a reference and an NVS view (an empty selection scores
-0).
+the same bits, when the lifted scene keeps them at this ``near``), against the ground-truth mask. An
+object's click IoU is the mean over its views; the figure is the mean over the objects that have a
+reference and an NVS view (an empty selection scores 0).
 """
 
 from __future__ import annotations
