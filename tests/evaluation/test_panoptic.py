@@ -346,11 +346,13 @@ def test_the_pass_over_the_views_equals_the_all_views_at_once_path(tiny_features
 
 def test_the_pass_holds_one_view_at_a_time(tiny_features, monkeypatch):
     """Instrumented: however many views there are, the pass keeps at most one view's pixel weights
-    (and, with no map budget, one feature map) alive, and computes each training view's weights once."""
+    (and, with no map and weights budget, one feature map) alive, computes each view's weights once
+    and reads each view's feature map from them (no render)."""
     import weakref
 
     import trace3d.lifting.contrastive as contrastive
     import trace3d.render.pixel_weights as pw
+    import trace3d.render.weight_maps as weight_maps
 
     live = {"weights": 0, "maps": 0, "plain": 0}
     peak = {"weights": 0, "maps": 0, "plain": 0}
@@ -369,8 +371,9 @@ def test_the_pass_holds_one_view_at_a_time(tiny_features, monkeypatch):
     # the pass's weights (rows in blending order); the plain ones must not be computed at all
     monkeypatch.setattr(pw, "pixel_weights_blend_order", counted("weights", pw.pixel_weights_blend_order))
     monkeypatch.setattr(pw, "pixel_weights", counted("plain", pw.pixel_weights))
-    monkeypatch.setattr(contrastive, "render_feature_map", counted("maps", contrastive.render_feature_map))
-    lifted, queries, cameras, train = _lifted_and_queries(tiny_features, map_budget_mb=0)
+    monkeypatch.setattr(contrastive, "render_feature_map", counted("plain", contrastive.render_feature_map))
+    monkeypatch.setattr(weight_maps, "feature_map", counted("maps", weight_maps.feature_map))
+    lifted, queries, cameras, train = _lifted_and_queries(tiny_features, map_budget_mb=0, weights_budget_mb=0)
     one = lifted.with_query(max_queries=1)
     for q in queries:
         lifted.plan(q, cameras)
@@ -378,12 +381,12 @@ def test_the_pass_holds_one_view_at_a_time(tiny_features, monkeypatch):
     peak.update(weights=0, maps=0)
     calls.update(weights=0, maps=0)
     lifted.run_plan()
-    assert calls["weights"] == len(train) and peak["weights"] == 1
+    assert calls["weights"] == len(cameras) and peak["weights"] == 1
     assert calls["maps"] == len(cameras) and peak["maps"] == 1
     # the answers need no further view
     for q in queries:
         lifted.object_gaussians(q), one.object_gaussians(q), lifted.object_masks(q, cameras)
-    assert calls["weights"] == len(train) and calls["maps"] == len(cameras) and calls["plain"] == 0
+    assert calls["weights"] == len(cameras) and calls["maps"] == len(cameras) and calls["plain"] == 0
 
 
 def test_evaluate_metrics_are_those_of_the_all_views_at_once_path(tiny_features, tmp_path, monkeypatch):
@@ -411,3 +414,48 @@ def test_evaluate_metrics_are_those_of_the_all_views_at_once_path(tiny_features,
         b = json.loads((tmp_path / f"{protocol}-streamed" / "metrics.json").read_text())
         a.pop("seconds"), b.pop("seconds")
         assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
+
+
+def test_segment_and_click_scores_share_one_knn_graph(tiny_features, tmp_path, monkeypatch):
+    """With both scores on, the evaluation builds the seen Gaussians' kNN graph once (the click scene's,
+    handed to the segment score) and writes the segment section it writes with a graph of its own."""
+    import trace3d.evaluation.step as step
+    import trace3d.segment as segment
+
+    calls = []
+    real = segment.gaussian_graph
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(segment, "gaussian_graph", counted)
+    shared = run(tiny_features, tmp_path / "shared")
+    assert len(calls) == 1 and shared["segment"]["segments"] > 0
+    calls.clear()
+    monkeypatch.setattr(step._ClickScene, "graph_for", lambda self, neighbours: None)
+    own = run(tiny_features, tmp_path / "own")
+    assert len(calls) == 2
+    for key in ("segment", "click"):
+        shared[key].pop("seconds"), own[key].pop("seconds")
+        assert json.dumps(shared[key], sort_keys=True) == json.dumps(own[key], sort_keys=True)
+
+
+def test_click_masks_from_kept_weights_equal_the_rendered_ones(tiny_features, tmp_path, monkeypatch):
+    """The click score reads a view's mask from the weights the lifted scene keeps; with no weights kept
+    it renders every mask (extract.object_mask) and writes the same section."""
+    import trace3d.lifting.query as query
+    import trace3d.render.weight_maps as weight_maps
+
+    calls = []
+    real = weight_maps.set_mask
+    monkeypatch.setattr(weight_maps, "set_mask", lambda *a: calls.append(1) or real(*a))
+    kept = run(tiny_features, tmp_path / "kept")["click"]
+    assert calls and kept["objects"] > 0
+    calls.clear()
+    init = query._Shared.__init__
+    monkeypatch.setattr(query._Shared, "__init__", lambda self, maps, weights: init(self, maps, 0))
+    rendered = run(tiny_features, tmp_path / "rendered")["click"]
+    assert not calls
+    kept.pop("seconds"), rendered.pop("seconds")
+    assert json.dumps(kept, sort_keys=True) == json.dumps(rendered, sort_keys=True)

@@ -373,15 +373,22 @@ def scene_truth(instances: np.ndarray, evaluated: dict[int, np.ndarray]) -> np.n
 
 
 def _scene_score(model, instance: np.ndarray, count: int, gt, frames: Sequence[str], cameras: dict, near: float,
-                 min_pixels: int) -> tuple[PanopticScore, dict]:
+                 min_pixels: int, view_weights=None) -> tuple[PanopticScore, dict]:
     """PQ^scene of the per-Gaussian ``instance`` [N] (1..count, 0 = none) over the views ``frames``;
     evaluated objects with fewer than ``min_pixels`` pixels over all the views together are void.
+    ``view_weights``: camera -> its blend-order pixel weights at ``near`` (the lifted scene's
+    :meth:`~trace3d.lifting.query.FeatureLifted.blend_weights`): the instance maps are read from them
+    (:func:`trace3d.render.weight_maps.instance_map`, the same bits), else rendered.
     Returns the score and the counts for metrics.json."""
     from ..lifting.contrastive import instance_map
+    from ..render import weight_maps
 
     preds, truths = [], []
     for f in frames:
-        preds.append(instance_map(model, cameras[f], instance, count, near).ravel())
+        if view_weights is not None:
+            preds.append(weight_maps.instance_map(view_weights(cameras[f]), instance, count).ravel())
+        else:
+            preds.append(instance_map(model, cameras[f], instance, count, near).ravel())
         truths.append(scene_truth(gt.instances(f), gt.members).ravel())
     pred = np.concatenate(preds) if preds else np.zeros(0, np.int64)
     truth = np.concatenate(truths) if truths else np.zeros(0, np.int64)
@@ -409,7 +416,7 @@ def evaluate_panoptic(lifted, gt, frames: Sequence[str], cameras: dict, samples:
     weights = lifted.visibility()
     clusters = cluster_features(lifted.features, weights, samples, min_share, seed)
     score, facts = _scene_score(lifted.model, clusters.instance, clusters.count, gt, frames, cameras,
-                                lifted.params.near, min_pixels)
+                                lifted.params.near, min_pixels, getattr(lifted, "blend_weights", None))
     out = {**score.to_json(), "clusters": clusters.count, "instances_in_views": facts["instances_in_views"],
            "objects": facts["objects"], "void_objects": facts["void_objects"],
            "views": len(frames), "pixels": facts["pixels"], "void_pixels": facts["void_pixels"],
@@ -421,18 +428,20 @@ def evaluate_panoptic(lifted, gt, frames: Sequence[str], cameras: dict, samples:
     return out
 
 
-def evaluate_segments(lifted, gt, frames: Sequence[str], cameras: dict, segment_params, min_pixels: int) -> dict:
+def evaluate_segments(lifted, gt, frames: Sequence[str], cameras: dict, segment_params, min_pixels: int,
+                      graph=None) -> dict:
     """PQ^scene of the ``trace3d segment`` objects (:func:`~trace3d.segment.segment_gaussians`: the lifted
     features over the Gaussians' 3D kNN graph; stuff segments count as instances like the others, and
     on the rooms they lie on void walls and floors) over the views ``frames``; as :func:`evaluate_panoptic`
-    otherwise."""
+    otherwise. ``graph``: the seen Gaussians' kNN graph with ``segment_params.neighbours`` if made
+    already (the click score's)."""
     from ..segment import segment_gaussians
 
     start = time.perf_counter()
     seg = segment_gaussians(lifted.model.means.detach().double().numpy(), lifted.features, lifted.visibility(),
-                            segment_params)
+                            segment_params, graph)
     score, facts = _scene_score(lifted.model, seg.instance, seg.count, gt, frames, cameras, lifted.params.near,
-                                min_pixels)
+                                min_pixels, getattr(lifted, "blend_weights", None))
     out = {**score.to_json(), "segments": seg.count, "stuff": int(seg.stuff.sum()), "threshold": seg.threshold,
            "threshold_source": seg.threshold_source, **facts, **seg.stats,
            "seconds": time.perf_counter() - start}

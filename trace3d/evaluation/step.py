@@ -184,12 +184,13 @@ def run_evaluate(scene_dir: Path, poses_dir: Path | None, gaussians_dir: Path, l
     if p.panoptic:
         with ph("panoptic"):
             extra["panoptic"] = _panoptic(lifted, lift_info, gt, cameras, by_name, p)
+    clicks = _ClickScene(lifted, p)
     if p.segment:
         with ph("segment"):
-            extra["segment"] = _segment(lifted, lift_info, gt, cameras, by_name, p)
+            extra["segment"] = _segment(lifted, lift_info, gt, cameras, by_name, p, clicks)
     if p.click:
         with ph("click"):
-            extra["click"] = _click(lifted, lift_info, gt, by_name, p)
+            extra["click"] = _click(lifted, lift_info, gt, by_name, p, clicks)
     with ph("pictures"):
         rows = []
         for i in _picture_choice(objects, p.picture_objects):
@@ -339,7 +340,31 @@ def _panoptic(lifted, lift_info: dict, gt: GroundTruth, cameras: list, by_name: 
                              p.panoptic_seed, p.min_pixels)
 
 
-def _segment(lifted, lift_info: dict, gt: GroundTruth, cameras: list, by_name: dict, p: EvaluateParams) -> dict:
+class _ClickScene:
+    """The click score's :class:`~trace3d.extract.ClickScene`, made on first use, and its kNN graph for the
+    segment score when both are on and their ``neighbours`` agree (the graph is then made once)."""
+
+    def __init__(self, lifted, p: EvaluateParams):
+        self.lifted, self.p, self.scene = lifted, p, None
+
+    def params(self):
+        from ..extract import ExtractParams
+
+        return ExtractParams(selection=self.p.click_selection)
+
+    def get(self):
+        from .click import click_scene
+
+        if self.scene is None:
+            self.scene = click_scene(self.lifted, self.params())
+        return self.scene
+
+    def graph_for(self, neighbours: int):
+        return self.get().graph if self.p.click and self.params().neighbours == neighbours else None
+
+
+def _segment(lifted, lift_info: dict, gt: GroundTruth, cameras: list, by_name: dict, p: EvaluateParams,
+             clicks: _ClickScene | None = None) -> dict:
     """PQ^scene of the segment step's objects (default parameters) over the protocol's views."""
     from ..segment import SegmentParams
     from .panoptic import evaluate_segments
@@ -347,17 +372,21 @@ def _segment(lifted, lift_info: dict, gt: GroundTruth, cameras: list, by_name: d
     if not (hasattr(lifted, "features") and hasattr(lifted, "visibility")):
         return {"skipped": f"lifting method {lift_info.get('method', '?')!r} has no lifted features"}
     frames = [c.name for c in cameras if p.views == "all" or c.split == "test"]
-    return evaluate_segments(lifted, gt, frames, by_name, SegmentParams(near=p.near), p.min_pixels)
+    sp = SegmentParams(near=p.near)
+    graph = clicks.graph_for(sp.neighbours) if clicks is not None and hasattr(lifted, "feature_map") else None
+    return evaluate_segments(lifted, gt, frames, by_name, sp, p.min_pixels, graph)
 
 
-def _click(lifted, lift_info: dict, gt: GroundTruth, by_name: dict, p: EvaluateParams) -> dict:
+def _click(lifted, lift_info: dict, gt: GroundTruth, by_name: dict, p: EvaluateParams,
+           clicks: _ClickScene | None = None) -> dict:
     """Click-extract IoU (one click per object, :mod:`.click`)."""
     from ..extract import ExtractParams
     from .click import evaluate_clicks
 
     if not (hasattr(lifted, "features") and hasattr(lifted, "feature_map")):
         return {"skipped": f"lifting method {lift_info.get('method', '?')!r} has no lifted features"}
-    return evaluate_clicks(lifted, gt, by_name, ExtractParams(selection=p.click_selection), p.min_pixels, p.near)
+    return evaluate_clicks(lifted, gt, by_name, ExtractParams(selection=p.click_selection), p.min_pixels, p.near,
+                           clicks.get() if clicks is not None else None)
 
 
 def _fmt(value: float | None, digits: int = 3) -> str:

@@ -20,7 +20,9 @@ all views exceeds ``gaussian_share`` (0.5: the majority). The geometry is frozen
 product with each training view's pixel weights (:func:`trace_object_weights`); :func:`trace_object`,
 GIT through the rasterizer, is its twin. The evaluation plans all its queries and answers them in one
 pass over the views, one view's pixel weights and feature map held at a time
-(:meth:`FeatureLifted.plan`, :meth:`FeatureLifted.run_plan`).
+(:meth:`FeatureLifted.plan`, :meth:`FeatureLifted.run_plan`). A view's feature map is read from its
+pixel weights in blending order (:mod:`trace3d.render.weight_maps`: the rasterizer's bits), so that a
+view costs one tracing pass, not a trace and a render.
 """
 
 from __future__ import annotations
@@ -292,8 +294,9 @@ def _points_key(q: QueryPoints) -> bytes:
 
 
 class _FeatureMaps:
-    """Rendered feature maps by view name, least recently used dropped beyond ``budget_bytes`` (a map
-    is a function of the view only, so a dropped one is rendered again to the same bits)."""
+    """Rendered feature maps (or a view's pixel weights) by view name, least recently used dropped beyond
+    ``budget_bytes`` (a map is a function of the view only, so a dropped one is rendered again to the
+    same bits)."""
 
     def __init__(self, budget_bytes: int):
         from collections import OrderedDict
@@ -320,11 +323,14 @@ class _FeatureMaps:
 
 class _Shared:
     """What :meth:`FeatureLifted.with_query` siblings share (none of it depends on the query parameters
-    but ``near``): the feature-map cache, the summed visibility, the traced object Gaussians and the
-    stored masks by query-point content, and the queries planned for the next pass over the views."""
+    but ``near``): the feature-map cache, the blend-order pixel weights of the views asked for outside
+    the pass (reference and test views: :meth:`FeatureLifted.blend_weights`), the summed visibility, the
+    traced object Gaussians and the stored masks by query-point content, and the queries planned for the
+    next pass over the views."""
 
-    def __init__(self, map_budget_bytes: int):
+    def __init__(self, map_budget_bytes: int, weights_budget_bytes: int):
         self.maps = _FeatureMaps(map_budget_bytes)
+        self.weights = _FeatureMaps(weights_budget_bytes)
         self.total: np.ndarray | None = None
         # object Gaussians by (share, query-point content): one query point is often all that the full
         # search keeps, and then both protocols trace alike
@@ -349,7 +355,7 @@ class FeatureLifted:
     """
 
     def __init__(self, model: GaussianModel, features: np.ndarray, train_cameras: Sequence[Camera],
-                 params: QueryParams | None = None, map_budget_mb: float = 256.0):
+                 params: QueryParams | None = None, map_budget_mb: float = 256.0, weights_budget_mb: float = 256.0):
         if features.shape[0] != len(model):
             raise Trace3DError(f"contrastive lift: {features.shape[0]} features for {len(model)} Gaussians; was it "
                                f"lifted on these Gaussians?")
@@ -358,9 +364,10 @@ class FeatureLifted:
         self.train_cameras = list(train_cameras)
         self.params = params or QueryParams()
         self.map_budget_mb = map_budget_mb
+        self.weights_budget_mb = weights_budget_mb
         self._queries: dict[str, QueryPoints] = {}
         self._gaussians: dict[str, np.ndarray] = {}
-        self._shared = _Shared(int(map_budget_mb * 2**20))
+        self._shared = _Shared(int(map_budget_mb * 2**20), int(weights_budget_mb * 2**20))
 
     def with_query(self, **overrides) -> "FeatureLifted":
         """The same lifted scene queried with other :class:`QueryParams` (e.g. ``max_queries=1``, the
@@ -368,20 +375,42 @@ class FeatureLifted:
         the traced objects and the planned pass with this one (they do not depend on the query
         parameters), so that queries planned on both are answered by one pass over the views."""
         params = dataclasses.replace(self.params, **overrides)
-        other = FeatureLifted(self.model, self.features, self.train_cameras, params, self.map_budget_mb)
+        other = FeatureLifted(self.model, self.features, self.train_cameras, params, self.map_budget_mb,
+                              self.weights_budget_mb)
         if params.near == self.params.near:
             other._shared = self._shared
         return other
 
     def feature_map(self, camera: Camera) -> np.ndarray:
-        """[H, W, D] rendered features (cached up to ``map_budget_mb``, least recently used dropped)."""
-        from .contrastive import render_feature_map
-
+        """[H, W, D] rendered features (cached up to ``map_budget_mb``, least recently used dropped): from
+        the view's :meth:`blend_weights` (:func:`trace3d.render.weight_maps.feature_map`, the bits of
+        :func:`~trace3d.lifting.contrastive.render_feature_map`, its twin)."""
         fmap = self._shared.maps.get(camera.name)
         if fmap is None:
-            fmap = render_feature_map(self.model, camera, self.features, self.params.near)
-            self._shared.maps.put(camera.name, fmap)
+            fmap = self._map_from(camera, self.blend_weights(camera))
         return fmap
+
+    def _map_from(self, camera: Camera, weights) -> np.ndarray:
+        """The feature map of ``camera`` from its blend-order ``weights``, put into the map cache."""
+        from ..render.weight_maps import feature_map
+
+        fmap = feature_map(weights, self.features)
+        self._shared.maps.put(camera.name, fmap)
+        return fmap
+
+    def blend_weights(self, camera: Camera):
+        """The full-view pixel weights of ``camera`` with each row in blending order
+        (:func:`~trace3d.render.pixel_weights.pixel_weights_blend_order`; what the feature map, the
+        evaluation's instance maps and object masks are read from), kept up to ``weights_budget_mb``
+        (least recently used dropped; the pass over the training views keeps none of its own)."""
+        from ..render.pixel_weights import pixel_weights_blend_order
+
+        w = self._shared.weights.get(camera.name)
+        if w is None:
+            with torch.no_grad():
+                w = pixel_weights_blend_order(self.model.splats(), camera, near=self.params.near)
+            self._shared.weights.put(camera.name, w)
+        return w
 
     def view_weights(self, camera: Camera):
         """The full-view :class:`~trace3d.render.pixel_weights.PixelWeights` of one view (not kept)."""
@@ -399,25 +428,33 @@ class FeatureLifted:
 
         splats = self.model.splats()
         for c in self.train_cameras:
-            with torch.no_grad():
-                yield c, pixel_weights_blend_order(splats, c, near=self.params.near)
+            w = self._shared.weights.get(c.name)  # a reference view's, computed for its query points
+            if w is None:
+                with torch.no_grad():
+                    w = pixel_weights_blend_order(splats, c, near=self.params.near)
+            yield c, w
 
     # --- the all-views-at-once path (the twin of the pass; it holds every training view) ----------
     def train_masks(self, q: QueryPoints) -> list[np.ndarray]:
         """[H, W] bool masks of ``q`` at every training view: :meth:`QueryPoints.mask` of each view's
-        feature map (the twin), in one kernel call over the training views' maps stacked (every
-        training view's map at once: for tests and twins); per view when the sizes differ or the
-        kernel does not apply."""
+        feature map rendered by the rasterizer (the twin of the maps read from pixel weights), in one
+        kernel call over the training views' maps stacked (every training view's map at once: for tests
+        and twins); per view when the sizes differ or the kernel does not apply."""
+        from .contrastive import render_feature_map
+
+        def rendered(c: Camera) -> np.ndarray:
+            return render_feature_map(self.model, c, self.features, self.params.near)
+
         cams = self.train_cameras
         if not cams or q.features.shape[0] == 0 or q.thresholds.dtype != np.float32 \
                 or len({(c.height, c.width) for c in cams}) != 1:
-            return [q.mask(self.feature_map(c)) for c in cams]
-        first = self.feature_map(cams[0])
+            return [q.mask(rendered(c)) for c in cams]
+        first = rendered(cams[0])
         if not _kernel_applies(first, q.features):
-            return [q.mask(self.feature_map(c)) for c in cams]
+            return [q.mask(rendered(c)) for c in cams]
         stack = np.empty((len(cams),) + first.shape, np.float32)
         for i, c in enumerate(cams):
-            stack[i] = self.feature_map(c)
+            stack[i] = first if i == 0 else rendered(c)
         out = np.empty(stack.shape[:3], np.bool_)
         _query_mask_stack(stack, q.features, q.thresholds, out)
         return list(out)
@@ -489,13 +526,16 @@ class FeatureLifted:
                 # other masks asked for here
                 keys = list(dict.fromkeys(trace_keys + list(wanted)))
                 by_key = {**dict(zip(trace_keys, trace_points)), **wanted}
-                masks = dict(zip(keys, self._masks_at(cam, [by_key[k] for k in keys])))
+                fmap = sh.maps.get(cam.name)
+                if fmap is None and keys:
+                    fmap = self._map_from(cam, w)
+                masks = dict(zip(keys, self._masks_at(cam, [by_key[k] for k in keys], fmap)))
                 for fg, key in zip(sums, trace_keys):
                     flat = np.ascontiguousarray(masks[key].ravel())
                     _add_masked_rows(flat, w.pixels, w.indptr, w.indices, w.weights, fg, view, touched, order)
                 for key in wanted:
                     sh.masks[(key, cam.name)] = (np.packbits(masks[key]), masks[key].shape)
-                del masks, w
+                del masks, w, fmap
             if sh.total is None:
                 sh.total = total
             del total
@@ -512,12 +552,13 @@ class FeatureLifted:
             for key, m in zip(keys, self._masks_at(cam, [wanted[k] for k in keys])):
                 sh.masks[(key, name)] = (np.packbits(m), m.shape)
 
-    def _masks_at(self, camera: Camera, points: Sequence[QueryPoints]) -> list[np.ndarray]:
+    def _masks_at(self, camera: Camera, points: Sequence[QueryPoints],
+                  fmap: np.ndarray | None = None) -> list[np.ndarray]:
         """[H, W] bool masks of each of ``points`` at one view (:meth:`QueryPoints.mask`, the twin; one
-        kernel call for all of them when it applies)."""
+        kernel call for all of them when it applies); ``fmap``: the view's feature map if at hand."""
         if not points:
             return []
-        fmap = self.feature_map(camera)
+        fmap = self.feature_map(camera) if fmap is None else fmap
         use = [q for q in points if q.features.shape[0] > 0]
         if use and all(q.features.dtype == np.float32 and q.thresholds.dtype == np.float32 for q in points) \
                 and all(_kernel_applies(fmap, q.features) for q in use):

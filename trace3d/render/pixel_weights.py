@@ -44,6 +44,8 @@ class PixelWeights:
         weights: [E] float32 blending weight w_k(x) of each entry.
         num_gaussians: N.
         width, height: the view's size.
+        blend_order: each row's entries in blending order (front to back) rather than by Gaussian
+            (:func:`pixel_weights_blend_order`; what :mod:`~trace3d.render.weight_maps` needs).
     """
 
     pixels: np.ndarray
@@ -53,6 +55,7 @@ class PixelWeights:
     num_gaussians: int
     width: int
     height: int
+    blend_order: bool = False
 
     def __post_init__(self) -> None:
         self._fwd: Optional[Tensor] = None
@@ -251,13 +254,15 @@ def pixel_weights_blend_order(splats: Splats, camera: Camera, near: float = 0.01
     The same rows and, row by row, the same (Gaussian, weight) entries (tested against
     :func:`pixel_weights`, the twin), so a per-Gaussian sum over the rows in row order (``np.bincount``
     over the entries, :func:`trace3d.lifting.query.object_weights`) gives the same bits: a Gaussian
-    has at most one entry per row. One pass over the tiles counts each pixel's entries and a second
-    writes them (:func:`~trace3d.render.kernels.trace.pixel_weights_kernel`), without the trace's dense
-    [splats, labels] table per tile or the sort of each row (the evaluation's training views: 6 of its
-    18 CPU seconds went to those on a default room, docs/performance.md)."""
+    has at most one entry per row. One pass over the tiles writes each tile's entries as they are
+    blended into room for a bound on them (:func:`~trace3d.render.kernels.trace.pixel_weights_kernel`),
+    without the trace's dense [splats, labels] table per tile or the sort of each row; a second, cheap
+    one puts them in rows by pixel (the evaluation's training views: 6 of its 18 CPU seconds went to
+    those on a default room, docs/performance.md; a first pass that counted each pixel's entries
+    before a second that wrote them cost as much again as this one)."""
     from .kernels.binning import Binning
     from .kernels.tiles import _geom_array, pack_geometry
-    from .kernels.trace import pixel_weights_kernel
+    from .kernels.trace import pixel_weights_bounds, pixel_weights_kernel, pixel_weights_rows
     from .projection import project, visible_mask
 
     n = check_splats(splats)
@@ -268,15 +273,22 @@ def pixel_weights_blend_order(splats: Splats, camera: Camera, near: float = 0.01
     binning = Binning(proj, camera.width, camera.height)
     egeom = binning.entry_geometry(_geom_array(pack_geometry(proj)))
     lists = np.ascontiguousarray(binning.lists, np.int32)
-    args = (egeom, binning.entry_boxes, lists, binning.offsets, binning.width, binning.height, binning.tiles_x,
-            float(near))
-    fill = np.zeros(hw, np.int64)
-    pixel_weights_kernel(*args, fill, np.zeros(0, np.int32), np.zeros(0, np.float32), False)
+    bounds = pixel_weights_bounds(binning.entry_boxes, binning.offsets, binning.width, binning.height, binning.tiles_x)
+    first = np.zeros(bounds.size, np.int64)
+    np.cumsum(bounds[:-1], out=first[1:])
+    room = int(bounds.sum())
+    tile_pixel = np.empty(room, np.int32)
+    tile_splat = np.empty(room, np.int32)
+    tile_w = np.empty(room, np.float32)
+    used = np.zeros(bounds.size, np.int64)
+    count = np.zeros(hw, np.int64)
+    pixel_weights_kernel(egeom, binning.entry_boxes, lists, binning.offsets, binning.width, binning.height,
+                         binning.tiles_x, float(near), first, count, tile_pixel, tile_splat, tile_w, used)
     indptr = np.zeros(hw + 1, np.int64)
-    np.cumsum(fill, out=indptr[1:])
-    splat = np.empty(int(indptr[-1]), np.int32)
+    np.cumsum(count, out=indptr[1:])
+    gauss = np.empty(int(indptr[-1]), np.int32)
     vals = np.empty(int(indptr[-1]), np.float32)
-    fill = indptr[:-1].copy()
-    pixel_weights_kernel(*args, fill, splat, vals, True)
-    gauss = seen.cpu().numpy()[splat].astype(np.int32)
-    return PixelWeights(np.arange(hw, dtype=np.int64), indptr, gauss, vals, n, camera.width, camera.height)
+    pixel_weights_rows(first, used, tile_pixel, tile_splat, tile_w, seen.cpu().numpy().astype(np.int32),
+                       indptr[:-1].copy(), gauss, vals)
+    return PixelWeights(np.arange(hw, dtype=np.int64), indptr, gauss, vals, n, camera.width, camera.height,
+                        blend_order=True)

@@ -209,17 +209,37 @@ def trace_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, labe
 
 
 
-@njit(parallel=True, cache=True, fastmath=FASTMATH)
-def pixel_weights_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, fill, out_splat, out_w, write):
-    """Every pixel's blending weights, the trace of one label per pixel without :func:`trace_kernel`'s
-    dense [splats, labels] table per tile: the same lanes, alphas and transmittances (the same inline
-    functions and float32 operations), each blended lane's weight emitted as it is blended.
+@njit(parallel=True, cache=True)
+def pixel_weights_bounds(ebox, offsets, width, height, tiles_x):
+    """[tiles] int64: at most how many entries :func:`pixel_weights_kernel` emits in each tile (the
+    pixels of every tile-list entry's footprint box inside the tile: a lane outside the box has alpha 0)."""
+    n_tiles = offsets.shape[0] - 1
+    out = np.zeros(n_tiles, np.int64)
+    for t in prange(n_tiles):
+        px0, py0, px1, py1 = _tile_bounds(t, tiles_x, width, height)
+        total = 0
+        for j in range(offsets[t], offsets[t + 1]):
+            lx0, lx1, y0, y1 = _box_in_tile(ebox, j, px0, py0, px1, py1)
+            if lx1 > lx0 and y1 > y0:
+                total += (lx1 - lx0) * (y1 - y0)
+        out[t] = total
+    return out
 
-    Two calls: with ``write`` False, ``fill`` [H * W] (zeros) counts each pixel's entries; with
-    ``write`` True, ``fill`` holds each pixel's first output position (the row pointers) and the
-    entries go to ``out_splat`` (the tile-list splat, ``lists[j]``) and ``out_w``, each pixel's in
-    the order its splats are blended (front to back). The weights are :func:`trace_kernel`'s for the
-    label map ``y * W + x`` (its table adds a pixel's one weight to 0, which gives the weight)."""
+
+@njit(parallel=True, cache=True, fastmath=FASTMATH)
+def pixel_weights_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, near, first, count, tile_pixel,
+                         tile_splat, tile_w, used):
+    """Every pixel's blending weights in one pass over the tiles, the trace of one label per pixel
+    without :func:`trace_kernel`'s dense [splats, labels] table per tile: the same lanes, alphas and
+    transmittances (the same inline functions and float32 operations), each blended lane's weight
+    emitted as it is blended.
+
+    Tile t writes its entries from ``first[t]`` on (room for :func:`pixel_weights_bounds`'s bound):
+    ``tile_pixel`` (y * W + x), ``tile_splat`` (the tile-list splat, ``lists[j]``) and ``tile_w``, in the
+    order its splats are blended (front to back), ``used[t]`` of them; ``count`` [H * W] (zeros) gets
+    each pixel's number of entries. :func:`pixel_weights_rows` then puts them in rows by pixel. The
+    weights are :func:`trace_kernel`'s for the label map ``y * W + x`` (its table adds a pixel's one
+    weight to 0, which gives the weight)."""
     n_tiles = offsets.shape[0] - 1
     t_min = np.float32(TRANSMITTANCE_MIN)
     near32 = np.float32(near)
@@ -234,6 +254,7 @@ def pixel_weights_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, ne
         buf = np.zeros(4 * TILE_PIXELS, np.float32)  # transmittance, open flag, alpha, weight planes
         buf[:2 * TILE_PIXELS] = 1.0
         n_done = 0
+        k = first[t]
         for j in range(start, end):
             lx0, lx1, y0, y1 = _box_in_tile(ebox, j, px0, py0, px1, py1)
             q0 = (y0 - py0) * TILE
@@ -247,15 +268,28 @@ def pixel_weights_kernel(egeom, ebox, lists, offsets, width, height, tiles_x, ne
                     py = py0 + q // TILE
                     if px < px1 and py < py1:
                         pix = py * width + px
-                        if write:
-                            k = fill[pix]
-                            out_splat[k] = lists[j]
-                            out_w[k] = w
-                            fill[pix] = k + 1
-                        else:
-                            fill[pix] += 1
+                        tile_pixel[k] = pix
+                        tile_splat[k] = lists[j]
+                        tile_w[k] = w
+                        k += 1
+                        count[pix] += 1
             if n_done == n_pix:
                 break
+        used[t] = k - first[t]
+
+
+@njit(parallel=True, cache=True)
+def pixel_weights_rows(first, used, tile_pixel, tile_splat, tile_w, seen, cursor, out_gauss, out_w):
+    """:func:`pixel_weights_kernel`'s entries into rows by pixel: ``cursor`` [H * W] holds each pixel's
+    first row position (the row pointers) and advances; a pixel lies in one tile, whose entries come in
+    blending order, so each row keeps that order. ``out_gauss`` gets the model's index ``seen[splat]``."""
+    for t in prange(first.shape[0]):
+        for e in range(first[t], first[t] + used[t]):
+            p = tile_pixel[e]
+            k = cursor[p]
+            out_gauss[k] = seen[tile_splat[e]]
+            out_w[k] = tile_w[e]
+            cursor[p] = k + 1
 
 
 
