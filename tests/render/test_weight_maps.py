@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from test_tracing import concat, grid_model, two_objects
+from tests.tracing.test_tracing import concat, grid_model, two_objects
 from trace3d.errors import Trace3DError
 from trace3d.extract import object_mask
 from trace3d.lifting.contrastive import instance_map as rendered_instance_map
