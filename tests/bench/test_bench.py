@@ -50,8 +50,8 @@ def test_bench_fit_phases_add_up_and_instrumentation_is_removed(tmp_path):
         assert 0 < ch[f"fwd_bwd_ms_16{suffix}"] < 60_000 and 0 < ch[f"fwd_bwd_ms_3{suffix}"] < 60_000
         assert ch[f"ratio_16_over_3{suffix}"] == pytest.approx(
             ch[f"fwd_bwd_ms_16{suffix}"] / ch[f"fwd_bwd_ms_3{suffix}"])
-        # 16 channels cost more than 3 but not unboundedly more (the same pairs, 19 blended values against 6)
-        assert 0.3 < ch[f"ratio_16_over_3{suffix}"] < 20
+        # (how much more 16 channels cost than 3 is the bench's figure, not a test's: a wall-clock ratio of two
+        # millisecond spans moves with the machine's load, issue 49)
     # cores busy: CPU time over wall time in the same spans, at most the machine's cores (+ timer slack)
     assert set(out["cores_busy"]) == set(bench.PHASES)
     cores = os.cpu_count() or 1
