@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import Trace3DError
+from ..tracing.consistency import patch_pair_matrix
 
 log = logging.getLogger(__name__)
 
@@ -46,15 +47,7 @@ def _jaccard_comembership(hierarchy, num_labels: int) -> np.ndarray:
     inter = member @ member.T
     sizes = member.sum(axis=1)
     union = sizes[:, None] + sizes[None, :] - inter
-    jac = np.where(union > 0, inter / np.maximum(union, 1), 0.0)
-    p = hierarchy.num_patches + 1
-    size = max(int(num_labels), p)
-    out = np.zeros((size, size))
-    out[:p, :p] = jac
-    idx = np.arange(1, p)
-    out[idx, idx] = 1.0
-    out[0, :] = out[:, 0] = 0.0
-    return out[:num_labels, :num_labels]
+    return patch_pair_matrix(np.where(union > 0, inter / np.maximum(union, 1), 0.0), num_labels)
 
 
 def recall_at_precision(score: np.ndarray, positive: np.ndarray) -> dict:

@@ -34,20 +34,27 @@ from typing import Sequence
 import numpy as np
 
 
-def comembership(hierarchy, num_labels: int, mask_weight: float = 1.0) -> np.ndarray:
-    """[T, T] float64 co-membership of one view's patches (T = ``num_labels``, padded with zeros):
-    1 where l == l' (the same patch), ``mask_weight`` where patches l != l' lie under a common mask of
-    the view, 0 otherwise (l, l' >= 1); row and column 0 (uncovered pixels) are 0."""
-    size = max(int(num_labels), hierarchy.num_patches + 1)
-    member = hierarchy.membership().astype(np.int64)  # [P + 1, M]
+def patch_pair_matrix(values: np.ndarray, num_labels: int) -> np.ndarray:
+    """[T, T] float64 from ``values`` [P + 1, P + 1] (a score for every pair of one view's patches): 1 on
+    the diagonal (the same patch), 0 in row and column 0 (uncovered pixels), cut or padded with zeros to
+    T = ``num_labels``."""
+    p = values.shape[0]
+    size = max(int(num_labels), p)
     out = np.zeros((size, size))
-    p = hierarchy.num_patches + 1
-    out[:p, :p] = np.where((member @ member.T) > 0, float(mask_weight), 0.0)
+    out[:p, :p] = values
     idx = np.arange(1, p)
     out[idx, idx] = 1.0
     out[0, :] = 0.0
     out[:, 0] = 0.0
     return out[:num_labels, :num_labels]
+
+
+def comembership(hierarchy, num_labels: int, mask_weight: float = 1.0) -> np.ndarray:
+    """[T, T] float64 co-membership of one view's patches (T = ``num_labels``, padded with zeros):
+    1 where l == l' (the same patch), ``mask_weight`` where patches l != l' lie under a common mask of
+    the view, 0 otherwise (l, l' >= 1); row and column 0 (uncovered pixels) are 0."""
+    member = hierarchy.membership().astype(np.int64)  # [P + 1, M]
+    return patch_pair_matrix(np.where((member @ member.T) > 0, float(mask_weight), 0.0), num_labels)
 
 
 def stack_comembership(comember: Sequence[np.ndarray], num_labels: int) -> np.ndarray:
