@@ -34,3 +34,17 @@ def test_binned_bayes_is_the_cells_share_of_positives():
     common = np.array([0.5, 0.55, 0.9, 0.95])
     positive = np.array([True, False, True, True])
     np.testing.assert_allclose(binned_bayes(same, common, positive), [0.5, 0.5, 1.0, 1.0])
+
+
+def test_a_room_without_its_trace_is_named(tmp_path):
+    from trace3d.bench.merge_vote import room_pairs, run_bench
+    from trace3d.cli import main
+    from trace3d.errors import Trace3DError
+
+    (tmp_path / "scene").mkdir()
+    missing = r"bench merge-vote: .*trace-paper/git\.npz is missing; run the room's trace"
+    with pytest.raises(Trace3DError, match=missing):
+        room_pairs(tmp_path)
+    with pytest.raises(Trace3DError, match=r"name at least one room"):
+        run_bench([])
+    assert main(["bench", "merge-vote", "--rooms", str(tmp_path)]) == 2
