@@ -20,6 +20,7 @@ from trace3d.lifting.contrastive import (ContrastiveParams, ContrastiveTrainer, 
 from trace3d.lifting.kernels.contrastive import fused_contrastive_loss
 from trace3d.lifting.query import FeatureLifted, QueryParams, find_query_points, iou, trace_object
 from trace3d.render import render
+from trace3d.scene import read_u16
 from trace3d.render.pixel_weights import pixel_weights, pixel_weights_blend_order
 
 
@@ -162,6 +163,67 @@ def test_fused_loss_kernel_matches_its_twins(kernel):
     assert float(subset) == pytest.approx(float(slow.detach()), rel=2e-6)
     # without a gradient asked for, the same value
     assert float(fused_contrastive_loss(feats, labels, **kw).detach()) == float(fused.detach())
+
+
+@pytest.mark.parametrize("kernel", ["official", "gaussian", "printed"])
+def test_undecided_pairs_leave_the_loss_in_all_three_forms(kernel):
+    """``undecided: ignore``: the fused kernel, the torch form and the per-anchor reference agree (value and
+    gradient) with a relation, and the relation changes the loss (it is not ignored by any form)."""
+    gen = torch.Generator().manual_seed(5)
+    feats = torch.randn(200, 16, generator=gen) * 0.7
+    labels = torch.randint(1, 7, (200,), generator=gen)
+    related = np.zeros((8, 8), bool)
+    for a, b in ((1, 2), (3, 4), (3, 5)):  # 3 shares a mask with 4 and with 5, 4 and 5 share none
+        related[a, b] = related[b, a] = True
+    kw = {"kernel": kernel, "temperature": 0.5 if kernel == "gaussian" else 0.01, "temperature_pos": 10.0,
+          "temperature_neg": 1.0}
+    values, grads = [], []
+    for form, dtype in ((fused_contrastive_loss, torch.float32), (contrastive_loss, torch.float64),
+                        (contrastive_loss_reference, torch.float64)):
+        f = feats.to(dtype).requires_grad_(True)
+        loss = form(f, labels, related=torch.from_numpy(related), **kw)
+        (g,) = torch.autograd.grad(loss, f)
+        values.append(float(loss.detach()))
+        grads.append(g.double())
+    assert values[0] == pytest.approx(values[2], rel=2e-6) and values[1] == pytest.approx(values[2], rel=1e-9)
+    for g in grads[:2]:
+        torch.testing.assert_close(g, grads[2], rtol=1e-3, atol=1e-4 * float(grads[2].abs().max()))
+    plain = float(contrastive_loss(feats.double(), labels, **kw))
+    assert abs(plain - values[2]) > 1e-3
+    # with nothing related, the same bits as without a relation
+    none = fused_contrastive_loss(feats, labels, related=np.zeros((8, 8), bool), **kw)
+    assert float(none) == float(fused_contrastive_loss(feats, labels, **kw))
+
+
+@pytest.mark.parametrize("kernel", ["gaussian", "printed"])
+def test_two_related_patches_alone_cost_nothing(kernel):
+    """Two patches under one mask, nothing else in the sample: every anchor's row holds only its own patch,
+    so each term is log(own / own) = 0 and nothing moves; without the relation the loss pushes them apart."""
+    gen = torch.Generator().manual_seed(6)
+    feats = (torch.randn(90, 16, generator=gen) * 0.3).requires_grad_(True)
+    labels = torch.tensor([1] * 50 + [2] * 40)
+    related = np.zeros((3, 3), bool)
+    related[1, 2] = related[2, 1] = True
+    kw = {"kernel": kernel, "temperature": 0.5}
+    loss = fused_contrastive_loss(feats, labels, related=related, **kw)
+    (g,) = torch.autograd.grad(loss, feats)
+    assert abs(float(loss)) < 1e-6 and float(g.abs().max()) < 1e-6
+    plain = fused_contrastive_loss(feats, labels, **kw)
+    (g_plain,) = torch.autograd.grad(plain, feats)
+    assert float(plain) > 0.1 and float(g_plain.abs().max()) > 1e-4
+
+
+def test_related_patches_read_the_hierarchy_by_hand():
+    from trace3d.lifting.contrastive import related_patches
+    from trace3d.masks.patches import PatchHierarchy
+
+    # masks: 0 (coarse) holds patches 1 and 2; 1 holds patch 3 and 4; 2 (fine) holds patch 2 only; patch 5 none
+    h = PatchHierarchy([[0], [0, 2], [1], [1], []], np.array([5, 5, 5, 5, 5]), np.array([10, 10, 5]),
+                       np.ones(3, np.float32))
+    related = related_patches(h)
+    expect = np.zeros((6, 6), bool)
+    expect[1, 2] = expect[2, 1] = expect[3, 4] = expect[4, 3] = True
+    np.testing.assert_array_equal(related, expect)
 
 
 def released_contrastive_loss(features, labels, temperature):
@@ -611,6 +673,42 @@ def test_lift_step_end_to_end_and_deterministic(tiny_fitted, tmp_path):
     assert ious and np.mean(ious) > 0.6
     again = load_lifted(tmp_path / "sp", model, scene, train)
     np.testing.assert_array_equal(again.object_gaussians(query), gaussians)
+
+
+def test_lift_with_undecided_pairs_ignored(tiny_fitted, tmp_path, capsys):
+    """``undecided: ignore`` on a patches folder (maps + hierarchies) runs and differs from ``push``; on
+    maps without hierarchies (merged instance maps) it stops with one sentence (exit 2) and writes nothing."""
+    from trace3d.cli import main
+    from trace3d.masks.patches import PatchHierarchy
+
+    root = tiny_fitted
+    labels = tmp_path / "patches"
+    labels.mkdir()
+    for png in sorted((root / "scene" / "instances").glob("*.png")):
+        (labels / png.name).write_bytes(png.read_bytes())
+        ids = read_u16(png, "instance map")
+        count = int(ids.max())
+        # one mask over every object (so all pairs are undecided) and one per object
+        h = PatchHierarchy([[0, p] for p in range(1, count + 1)], np.bincount(ids.ravel(), minlength=count + 1)[1:],
+                           np.ones(count + 1, np.int64), np.ones(count + 1, np.float32), png.stem)
+        (labels / f"{png.stem}.json").write_text(json.dumps(h.to_json()))
+    base = {"method": "contrastive", "preset": "paper", "iterations": 30, "pixels": 128, "pool_pixels": 256,
+            "pca_views": 1}
+    outs = {}
+    for mode in ("push", "ignore"):
+        assert main(["lift", "--scene", str(root / "scene"), "--poses", str(root / "poses"), "--gaussians",
+                     str(root / "gaussians"), "--labels", str(labels), "--out", str(tmp_path / mode), "--params",
+                     json.dumps({**base, "undecided": mode})]) == 0
+        outs[mode] = np.load(tmp_path / mode / "features.npy")
+        assert json.loads((tmp_path / mode / "lift.json").read_text())["params"]["undecided"] == mode
+    assert not np.array_equal(outs["push"], outs["ignore"])
+    capsys.readouterr()
+    assert main(["lift", "--scene", str(root / "scene"), "--poses", str(root / "poses"), "--gaussians",
+                 str(root / "gaussians"), "--labels", str(root / "scene" / "instances"), "--out",
+                 str(tmp_path / "merged"), "--params", json.dumps({**base, "undecided": "ignore"})]) == 2
+    err = capsys.readouterr().err
+    assert "undecided" in err and "hierarchy" in err and "Traceback" not in err
+    assert not (tmp_path / "merged").exists()
 
 
 def test_self_prompt_with_the_graph_prompt_source(tiny_fitted, tmp_path):

@@ -18,6 +18,13 @@ where U+(u) are the sampled pixels of u's instance. The kernel k and U+(u) are t
 - ``gaussian``: k = exp(-tau ||f1 - f2||^2) with one temperature (the printed similarity used directly
   as the kernel, i.e. without the outer exp); U+(u) holds u.
 
+Undecided pairs (``undecided``, beyond the paper; docs/tracing.md). ``push`` (the paper): every pair of
+pixels of two different patches is a negative. ``ignore``: two pixels of different patches that lie
+under one common mask of their view (the patch step's hierarchy, ``<frame>.json`` beside the maps) are
+neither pulled nor pushed: their pair leaves the denominator. The masks leave such pairs undecided (the
+parts of one object, or two objects of one group); the other views' patches, through the shared
+Gaussians, decide them. Works on the raw patches (``consistent_masks: false``), without a merge.
+
 The ``paper`` preset is the printed kernel with the released code's learning rate (0.005), counts and
 pixels: at the printed lr 1e-5 the loss does not move in 1,500 iterations on a default room, at
 0.005 it gave the best test-view query IoU of the forms we measured (docs/lifting.md).
@@ -88,6 +95,7 @@ class ContrastiveParams:
     pca_views: int = 3
     log_every: int = 10
     query: dict = field(default_factory=dict)  # QueryParams overrides, used when the lift is queried
+    undecided: Literal["push", "ignore"] = "push"  # pairs of patches under one mask (module docstring)
 
     def __post_init__(self) -> None:
         for key, value in PRESET_VALUES[self.preset].items():
@@ -96,6 +104,8 @@ class ContrastiveParams:
         if self.dim < 1 or self.iterations < 1 or self.pixels < 2 or self.pool_pixels < 2:
             raise ValueError(f"dim, iterations must be >= 1 and pixels, pool_pixels >= 2, got {self.dim}, "
                              f"{self.iterations}, {self.pixels}, {self.pool_pixels}")
+        if self.undecided not in ("push", "ignore"):
+            raise ValueError(f"undecided must be 'push' or 'ignore', got {self.undecided!r}")
         if not (self.lr > 0 and self.temperature > 0 and self.temperature_pos > 0 and self.temperature_neg > 0):
             raise ValueError("lr and the temperatures must be > 0")
 
@@ -117,8 +127,27 @@ def _sq_dist(a: Tensor, b: Tensor) -> Tensor:
     return ((a * a).sum(1)[:, None] + (b * b).sum(1)[None, :] - 2.0 * a @ b.t()).clamp_min(0.0)
 
 
+def related_patches(hierarchy) -> np.ndarray:
+    """[P + 1, P + 1] bool from one view's patch hierarchy: True where two different patches lie under a
+    common mask of the view (the pairs ``undecided: ignore`` leaves out); row and column 0 (uncovered
+    pixels) and the diagonal are False."""
+    member = hierarchy.membership().astype(np.int32)  # [P + 1, M]
+    related = (member @ member.T) > 0
+    np.fill_diagonal(related, False)
+    related[0, :] = False
+    related[:, 0] = False
+    return related
+
+
+def _ignored(related: Tensor, rows: Tensor, cols: Tensor) -> Tensor:
+    """[R, C] bool: the pairs of labels ``rows`` x ``cols`` that ``related`` ([L, L], by label value)
+    leaves undecided (never two pixels of one label)."""
+    return related[rows][:, cols] & (rows[:, None] != cols[None, :])
+
+
 def contrastive_loss(features: Tensor, labels: Tensor, kernel: str = "official", temperature: float = 0.01,
-                     temperature_pos: float = 100.0, temperature_neg: float = 1.0, chunk: int = 2048) -> Tensor:
+                     temperature_pos: float = 100.0, temperature_neg: float = 1.0, chunk: int = 2048,
+                     related: Tensor | None = None) -> Tensor:
     """The contrastive loss over P sampled pixels (module docstring).
 
     Cheap form: pixels are sorted by instance, so the positives of an anchor are one diagonal block.
@@ -134,6 +163,8 @@ def contrastive_loss(features: Tensor, labels: Tensor, kernel: str = "official",
         labels: [P] int64 instance ids (all labelled).
         kernel: "official", "printed" or "gaussian".
         chunk: anchor rows per block of the full pass (bounds memory at chunk x P).
+        related: optional [L, L] bool by label value (L > every label): pairs of two different labels
+            marked True are left out of the denominator (``undecided: ignore``, :func:`related_patches`).
     Returns:
         scalar loss (the anchors' sum over P).
     """
@@ -145,7 +176,12 @@ def contrastive_loss(features: Tensor, labels: Tensor, kernel: str = "official",
     without_self = kernel == "official"
     lab, order = torch.sort(labels, stable=True)
     f = features[order]
-    den = torch.cat([k_neg(_sq_dist(f[a:a + chunk], f)).sum(1) for a in range(0, p, chunk)])
+    if related is None:
+        den = torch.cat([k_neg(_sq_dist(f[a:a + chunk], f)).sum(1) for a in range(0, p, chunk)])
+    else:
+        related = torch.as_tensor(related, dtype=torch.bool)
+        den = torch.cat([torch.where(_ignored(related, lab[a:a + chunk], lab), 0.0, k_neg(_sq_dist(f[a:a + chunk], f))).sum(1)
+                         for a in range(0, p, chunk)])
     _, counts = torch.unique_consecutive(lab, return_counts=True)
     nums, fixes = [], []
     start = 0
@@ -171,15 +207,20 @@ def contrastive_loss_reference(features: Tensor, labels: Tensor, **kwargs) -> Te
     """Slow twin of :func:`contrastive_loss`: the formula anchor by anchor in float64."""
     f = features.double()
     kernel = kwargs.get("kernel", "official")
+    related = kwargs.get("related")
     terms = []
     for u in range(f.shape[0]):
         d2 = ((f[u][None] - f) ** 2).sum(1)
         same = labels == labels[u]
+        # the pairs left undecided count nowhere: drop them from the anchor's row before any sum
+        kept = torch.ones_like(same) if related is None else ~(torch.as_tensor(related)[int(labels[u])][labels] & ~same)
+        d2, same = d2[kept], same[kept]
+        own = int(kept[:u].sum())  # the anchor's place in the kept row
         if kernel == "official":
             tau = torch.where(same, kwargs.get("temperature_pos", 100.0), kwargs.get("temperature_neg", 1.0))
             k = torch.exp(torch.exp(-d2 / tau.double()))
             others = same.clone()
-            others[u] = False
+            others[own] = False
             if others.any():
                 terms.append(-torch.log(k[others].sum() / k.sum()))
             continue
@@ -203,7 +244,7 @@ class PixelPools:
 
     def __init__(self, model: GaussianModel, cameras: Sequence[Camera], label_maps: Sequence[np.ndarray],
                  pool_pixels: int, rng: np.random.Generator, with_weights: bool, near: float = 0.01,
-                 progress: bool = False):
+                 progress: bool = False, relations: Sequence[np.ndarray] | None = None):
         from ..render.pixel_weights import pixel_weights
 
         splats = model.splats()
@@ -211,9 +252,11 @@ class PixelPools:
         self.pixels: list[np.ndarray] = []
         self.labels: list[np.ndarray] = []
         self.weights = []
-        bar = tqdm(list(zip(cameras, label_maps)), desc="pixel weights", disable=not progress, leave=False,
+        self.related: list[np.ndarray | None] = []  # per kept view: its undecided pairs, or None (push all)
+        relations = list(relations) if relations is not None else [None] * len(label_maps)
+        bar = tqdm(list(zip(cameras, label_maps, relations)), desc="pixel weights", disable=not progress, leave=False,
                    mininterval=0.5 if sys.stderr.isatty() else 30.0)
-        for cam, lab in bar:
+        for cam, lab, related in bar:
             flat = np.asarray(lab).reshape(-1)
             labelled = np.flatnonzero(flat > 0)
             if labelled.size < 2:
@@ -222,6 +265,7 @@ class PixelPools:
             self.cameras.append(cam)
             self.pixels.append(pool)
             self.labels.append(flat[pool].astype(np.int64))
+            self.related.append(related)
             if with_weights:
                 with torch.no_grad():
                     self.weights.append(pixel_weights(splats, cam, pool, near=near))
@@ -249,7 +293,7 @@ class ContrastiveTrainer:
     """Adam on the features only, one view's sampled pixels per iteration."""
 
     def __init__(self, model: GaussianModel, cameras: Sequence[Camera], label_maps: Sequence[np.ndarray],
-                 params: ContrastiveParams, progress: bool = False):
+                 params: ContrastiveParams, progress: bool = False, relations: Sequence[np.ndarray] | None = None):
         self.model = model.detached_copy()
         self.params = params
         self.rng = np.random.default_rng(params.seed)
@@ -260,7 +304,8 @@ class ContrastiveTrainer:
         self.optimizer = CpuAdam(self.features, lr=params.lr)
         start = time.perf_counter()
         self.pools = PixelPools(self.model, cameras, label_maps, params.pool_pixels, self.rng,
-                                with_weights=params.path == "sparse", near=params.near, progress=progress)
+                                with_weights=params.path == "sparse", near=params.near, progress=progress,
+                                relations=relations if params.undecided == "ignore" else None)
         self.precompute_seconds = time.perf_counter() - start
         self.kwargs = loss_kwargs(params)
         # the fast step (sparse path with the fused loss): no autograd graph, one reused gradient buffer
@@ -281,7 +326,8 @@ class ContrastiveTrainer:
             rendered = render_pixels(self.model, self.pools.cameras[v], self.features, self.pools.pixels[v][rows],
                                      self.params.near)
         loss = fused_contrastive_loss if self.params.fused else contrastive_loss
-        return loss(rendered, torch.from_numpy(self.pools.labels[v][rows]), **self.kwargs)
+        return loss(rendered, torch.from_numpy(self.pools.labels[v][rows]), related=self.pools.related[v],
+                    **self.kwargs)
 
     def step(self, path: str | None = None) -> float:
         if (path or self.params.path) == "sparse" and self.params.fused:
@@ -298,7 +344,8 @@ class ContrastiveTrainer:
         v, rows = self.sample()
         w = self.pools.weights[v]
         rendered = _gather_rows(w.indptr, w.indices, w.weights, rows, self.features.detach().numpy())
-        loss, g_rendered = loss_and_grad(rendered, self.pools.labels[v][rows], self._consts)
+        loss, g_rendered = loss_and_grad(rendered, self.pools.labels[v][rows], self._consts,
+                                         related=self.pools.related[v])
         scatter_rows_add(w.indptr, w.indices, w.weights, rows, g_rendered, self._grad, numba.get_num_threads())
         self.optimizer.step(self._grad)  # leaves the buffer zero
         return loss
@@ -331,10 +378,12 @@ class ContrastiveTrainer:
 
 
 def lift_features(model: GaussianModel, cameras: Sequence[Camera], label_maps: Sequence[np.ndarray],
-                  params: ContrastiveParams, progress: bool = False) -> tuple[np.ndarray, list[tuple[int, float]], dict]:
-    """Train the features; returns features [N, D] float32, the loss history and timings."""
+                  params: ContrastiveParams, progress: bool = False, relations: Sequence[np.ndarray] | None = None,
+                  ) -> tuple[np.ndarray, list[tuple[int, float]], dict]:
+    """Train the features; returns features [N, D] float32, the loss history and timings. ``relations``:
+    per view its :func:`related_patches` (used when ``params.undecided`` is ``ignore``)."""
     start = time.perf_counter()
-    trainer = ContrastiveTrainer(model, cameras, label_maps, params, progress=progress)
+    trainer = ContrastiveTrainer(model, cameras, label_maps, params, progress=progress, relations=relations)
     history = trainer.train(params.iterations, progress=progress)
     info = {"precompute_seconds": trainer.precompute_seconds, "train_seconds": time.perf_counter() - start
             - trainer.precompute_seconds, "weights_nnz": trainer.pools.nnz, "weights_bytes": trainer.pools.nbytes,

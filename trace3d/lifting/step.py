@@ -47,6 +47,22 @@ def parse_lift_params(params: dict | None):
     raise ConfigError(f"lift params.method: {method!r} is not one of {list(METHODS)}.")
 
 
+def undecided_relations(labels_dir: Path, cameras) -> list[np.ndarray]:
+    """Per training view the pairs of patches under one common mask (``undecided: ignore``), from the
+    patch step's hierarchies beside the maps; one sentence if the folder holds none (merged maps)."""
+    from ..masks.patches import read_patches
+    from .contrastive import related_patches
+
+    out = []
+    for cam in cameras:
+        path = labels_dir / f"{cam.name}.json"
+        if not path.is_file():
+            raise ConfigError(f"lift params.undecided: ignore needs the patch step's hierarchy {path}; use it on "
+                              f"the raw patches (consistent_masks: false), not on merged instance maps.")
+        out.append(related_patches(read_patches(labels_dir, cam.name)[1]))  # checks the map against it
+    return out
+
+
 def run_lift(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Path | None, out_dir: Path,
              params: dict, progress: bool = True) -> dict:
     """Run the lift step into ``out_dir``; returns the lift.json content."""
@@ -79,13 +95,14 @@ def run_lift(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Pat
     if labels_dir is None:
         raise ConfigError("lift: contrastive lifting needs --labels (the consistent instance maps).")
     maps = load_label_maps(labels_dir, [c.name for c in train], "instance map", [(c.width, c.height) for c in train])
+    relations = undecided_relations(Path(labels_dir), train) if p.undecided == "ignore" else None
     most = max((np.unique(m[m > 0]).size for m in maps), default=0)
     warning = None
     if most < 2:  # the loss pulls one instance together and pushes nothing apart: it reaches 0 and says nothing
         warning = (f"no training view's instance map in {labels_dir} holds two instances (at most {most}); the "
                    f"contrastive loss has nothing to separate, so the features will not tell objects apart")
         log.warning("lift: %s; check the masks (or the merge) that made these maps", warning)
-    features, history, timing = lift_features(model, train, maps, p, progress=progress)
+    features, history, timing = lift_features(model, train, maps, p, progress=progress, relations=relations)
     np.save(out_dir / "features.npy", features)
     write_history(out_dir / "loss.csv", history)
     loss_picture(out_dir / "loss.png", history)

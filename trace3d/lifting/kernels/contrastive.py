@@ -8,8 +8,9 @@ For P sampled pixels sorted by instance (block [s_u, e_u) = u's instance), featu
 
 with k_uv = k_pos(d2_uv) inside a block and k_neg(d2_uv) across blocks, d2_uv = ||f_u - f_v||^2 (kind 2,
 the released loss: num_u leaves v = u out, and an anchor whose num_u is then empty adds nothing, its
-1/den_u and 1/num_u taken as 0 below). Because k is symmetric in (u, v), the gradient collects both
-roles of a pair:
+1/den_u and 1/num_u taken as 0 below). Pairs of two different instances that the caller marks as
+undecided (``related``, the lift's ``undecided: ignore``) weigh 0: they leave den and the gradient.
+Because k is symmetric in (u, v), the gradient collects both roles of a pair:
 
     dL/df_u = 2/P sum_v  c_uv (f_u - f_v),
     c_uv = k'(d2_uv) (1/den_u + 1/den_v) - [v in block(u)] k_pos'(d2_uv) (1/num_u + 1/num_v)
@@ -110,12 +111,14 @@ def _lane_sum(part):
 
 @njit(inline="always", fastmath=PAIR_MATH)
 def _kernel_row(grow, nu, nv, wu, wv, a_pos, a_neg, kind, lo, hi, drow, col_den, col_num, part_den, part_num,
-                self_col):
+                self_col, krow, sv):
     """Kernel values of one anchor row over the tile's columns, scale ``a_pos`` inside the anchor's
     instance (columns [lo, hi)) and ``a_neg`` outside: k' into ``drow``, k into the column sums (and the
     numerator's inside the instance), and the row's sums of k as 16 lane partials (``part_den``, all
     columns; ``part_num``, the instance's), one vector of 16 columns at a time. Column ``self_col`` (the
-    anchor itself under kind 2; -1: none) counts in the denominator only, with k' = 0."""
+    anchor itself under kind 2; -1: none) counts in the denominator only, with k' = 0. A pair weighs
+    ``krow[sv[v]]`` besides the pixels' validity (1, or 0 for an undecided pair: the anchor's row of the
+    keep matrix, indexed by the columns' instance slots)."""
     for lane in range(LANES):
         part_den[lane] = np.float32(0.0)
         part_num[lane] = np.float32(0.0)
@@ -126,7 +129,7 @@ def _kernel_row(grow, nu, nv, wu, wv, a_pos, a_neg, kind, lo, hi, drow, col_den,
             a = a_pos if inside else a_neg
             d2 = max(nu + nv[v] - np.float32(2.0) * grow[v], np.float32(0.0))
             e = _exp_neg(a * d2)
-            w = wu * wv[v]
+            w = wu * wv[v] * krow[sv[v]]
             if kind == 0:
                 k = e * w
                 dkv = -a * k
@@ -143,12 +146,12 @@ def _kernel_row(grow, nu, nv, wu, wv, a_pos, a_neg, kind, lo, hi, drow, col_den,
 
 
 @njit(parallel=True, cache=True, fastmath=PAIR_MATH)
-def _pair_tiles(ft, norms, starts, ends, valid, a_pos, a_neg, kind, ti, tj, dkt, pden, pnum):
+def _pair_tiles(ft, norms, starts, ends, valid, a_pos, a_neg, kind, ti, tj, dkt, pden, pnum, keep, slot):
     """First pass, over the tiles (I, J), I <= J, of the symmetric pair matrix.
 
     Per pair: d2 from the tile's Gram block, the kernel value k and its derivative k'(d2) (times
-    valid_u valid_v, so padding pixels weigh nothing); k' is kept per tile (``dkt``) for the second
-    pass. The tile's row sums go to ``pden/pnum[J, rows of I]``
+    valid_u valid_v keep[slot_u, slot_v], so padding pixels and undecided pairs weigh nothing); k' is
+    kept per tile (``dkt``) for the second pass. The tile's row sums go to ``pden/pnum[J, rows of I]``
     and (I < J) its column sums to ``pden/pnum[I, rows of J]``: every slot has one writer, and the
     totals are summed over J in a fixed order afterwards, so nothing depends on the thread count.
     """
@@ -172,6 +175,7 @@ def _pair_tiles(ft, norms, starts, ends, valid, a_pos, a_neg, kind, ti, tj, dkt,
                     grow[v] += _dot16(fv, x, o, v)
         nv = norms[v0:v0 + TILE]
         wv = valid[v0:v0 + TILE]
+        sv = slot[v0:v0 + TILE]
         col_den = np.zeros(TILE, np.float32)
         col_num = np.zeros(TILE, np.float32)
         part_den = np.empty(LANES, np.float32)
@@ -182,7 +186,7 @@ def _pair_tiles(ft, norms, starts, ends, valid, a_pos, a_neg, kind, ti, tj, dkt,
             lo, hi = _anchor_span(starts, ends, u0 + u, v0)
             self_col = u if kind == 2 and i == j else -1  # kind 2: the anchor itself, denominator only
             _kernel_row(gram[u], nu, nv, wu, wv, a_pos, a_neg, kind, lo, hi, dk[u], col_den, col_num, part_den,
-                        part_num, self_col)
+                        part_num, self_col, keep[slot[u0 + u]], sv)
             pden[j, u0 + u] = _lane_sum(part_den)
             pnum[j, u0 + u] = _lane_sum(part_num)
         if i != j:
@@ -412,18 +416,42 @@ def _workspace(nb: int, dp: int):
     return _WORK.arrays
 
 
-def loss_and_grad(features: np.ndarray, labels: np.ndarray, consts: tuple, want_grad: bool = True):
+_NO_RELATION = np.ones((1, 1), np.float32)
+
+
+def _keep_slots(labels: np.ndarray, order: np.ndarray, related, pp: int) -> tuple[np.ndarray, np.ndarray]:
+    """The keep matrix [S, S] float32 (1: the pair counts, 0: undecided) over the S distinct labels of the
+    sample, and each sorted pixel's slot in it (padding: slot 0, its validity already 0). Without
+    ``related``, one slot with keep 1 (the same bits as no factor at all: w * 1 = w)."""
+    slot = np.zeros(pp, np.int64)
+    if related is None:
+        return _NO_RELATION, slot
+    related = np.asarray(related, bool)
+    values, inverse = np.unique(labels, return_inverse=True)
+    if values.size and (values.min() < 0 or values.max() >= related.shape[0]):
+        raise Trace3DError(f"contrastive loss: a label ({int(values.max())}) lies outside the relation matrix "
+                           f"of {related.shape[0]} labels.")
+    keep = (~related[np.ix_(values, values)]).astype(np.float32)
+    np.fill_diagonal(keep, 1.0)  # one instance's pairs always count (lo/hi decide their kernel)
+    slot[:labels.size] = inverse.reshape(-1)[order]
+    return keep, slot
+
+
+def loss_and_grad(features: np.ndarray, labels: np.ndarray, consts: tuple, want_grad: bool = True, related=None):
     """The contrastive loss (float) and, if ``want_grad``, its gradient [P, D] float32 w.r.t. ``features``
     ([P, D] float, any order; ``labels`` [P] int) by the fused kernel, without torch or autograd:
     the lifting's fast step calls it directly, :func:`fused_contrastive_loss` wraps it for autograd.
-    Pads P to a multiple of :data:`TILE` and D to one of :data:`LANES` (module docstring)."""
+    Pads P to a multiple of :data:`TILE` and D to one of :data:`LANES` (module docstring). ``related``:
+    optional [L, L] bool by label value, the pairs of two different labels left out (undecided)."""
     p, dim = features.shape
     pp = -(-p // TILE) * TILE
     dp = -(-dim // LANES) * LANES
-    order, ft, norms, starts, ends, valid = _prepare(features, np.ascontiguousarray(labels, np.int64), pp, dp)
+    labels = np.ascontiguousarray(labels, np.int64)
+    order, ft, norms, starts, ends, valid = _prepare(features, labels, pp, dp)
+    keep, slot = _keep_slots(labels, order, related, pp)
     ti, tj, dkt, pden, pnum, gpart = _workspace(pp // TILE, dp)
     a_pos, a_neg, kind = consts
-    _pair_tiles(ft, norms, starts, ends, valid, a_pos, a_neg, kind, ti, tj, dkt, pden, pnum)
+    _pair_tiles(ft, norms, starts, ends, valid, a_pos, a_neg, kind, ti, tj, dkt, pden, pnum, keep, slot)
     loss, inv_den, inv_num = _sums(pden, pnum, p)
     if not want_grad:
         return float(loss), None
@@ -444,9 +472,9 @@ def kernel_constants(kernel: str, temperature: float, temperature_pos: float, te
 
 class _FusedLoss(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, features: Tensor, labels: Tensor, consts: tuple) -> Tensor:
+    def forward(ctx, features: Tensor, labels: Tensor, consts: tuple, related) -> Tensor:
         want = features.requires_grad
-        loss, grad = loss_and_grad(features.detach().float().numpy(), labels.numpy(), consts, want)
+        loss, grad = loss_and_grad(features.detach().float().numpy(), labels.numpy(), consts, want, related)
         if want:
             ctx.save_for_backward(torch.from_numpy(grad).to(features.dtype))
         return torch.tensor(loss, dtype=features.dtype)
@@ -454,11 +482,11 @@ class _FusedLoss(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_loss: Tensor):
         (g,) = ctx.saved_tensors
-        return g * v_loss, None, None
+        return g * v_loss, None, None, None
 
 
 def fused_contrastive_loss(features: Tensor, labels: Tensor, kernel: str = "official", temperature: float = 0.01,
-                           temperature_pos: float = 100.0, temperature_neg: float = 1.0) -> Tensor:
+                           temperature_pos: float = 100.0, temperature_neg: float = 1.0, related=None) -> Tensor:
     """The contrastive loss of :func:`trace3d.lifting.contrastive.contrastive_loss` by the fused CPU
     kernel: same value and gradient w.r.t. ``features`` ([P, D], CPU), the gradient computed in the same
     call (module docstring)."""
@@ -467,4 +495,5 @@ def fused_contrastive_loss(features: Tensor, labels: Tensor, kernel: str = "offi
     if features.shape[0] == 0:
         return features.sum() * 0.0
     consts = kernel_constants(kernel, temperature, temperature_pos, temperature_neg)
-    return _FusedLoss.apply(features, labels.to(torch.int64), consts)
+    related = None if related is None else np.asarray(related, bool)
+    return _FusedLoss.apply(features, labels.to(torch.int64), consts, related)
