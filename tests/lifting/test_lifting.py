@@ -165,8 +165,9 @@ def test_fused_loss_kernel_matches_its_twins(kernel):
     assert float(fused_contrastive_loss(feats, labels, **kw).detach()) == float(fused.detach())
 
 
+@pytest.mark.parametrize("weight", [0.0, 0.3])
 @pytest.mark.parametrize("kernel", ["official", "gaussian", "printed"])
-def test_undecided_pairs_leave_the_loss_in_all_three_forms(kernel):
+def test_undecided_pairs_leave_the_loss_in_all_three_forms(kernel, weight):
     """``undecided: ignore``: the fused kernel, the torch form and the per-anchor reference agree (value and
     gradient) with a relation, and the relation changes the loss (it is not ignored by any form)."""
     gen = torch.Generator().manual_seed(5)
@@ -181,7 +182,7 @@ def test_undecided_pairs_leave_the_loss_in_all_three_forms(kernel):
     for form, dtype in ((fused_contrastive_loss, torch.float32), (contrastive_loss, torch.float64),
                         (contrastive_loss_reference, torch.float64)):
         f = feats.to(dtype).requires_grad_(True)
-        loss = form(f, labels, related=torch.from_numpy(related), **kw)
+        loss = form(f, labels, related=torch.from_numpy(related), undecided_weight=weight, **kw)
         (g,) = torch.autograd.grad(loss, f)
         values.append(float(loss.detach()))
         grads.append(g.double())
@@ -190,6 +191,9 @@ def test_undecided_pairs_leave_the_loss_in_all_three_forms(kernel):
         torch.testing.assert_close(g, grads[2], rtol=1e-3, atol=1e-4 * float(grads[2].abs().max()))
     plain = float(contrastive_loss(feats.double(), labels, **kw))
     assert abs(plain - values[2]) > 1e-3
+    # weight 1 pushes undecided pairs like any other: the paper's loss
+    full = fused_contrastive_loss(feats, labels, related=related, undecided_weight=1.0, **kw)
+    assert float(full) == pytest.approx(plain, rel=2e-6)
     # with nothing related, the same bits as without a relation
     none = fused_contrastive_loss(feats, labels, related=np.zeros((8, 8), bool), **kw)
     assert float(none) == float(fused_contrastive_loss(feats, labels, **kw))

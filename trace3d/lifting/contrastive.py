@@ -24,6 +24,8 @@ under one common mask of their view (the patch step's hierarchy, ``<frame>.json`
 neither pulled nor pushed: their pair leaves the denominator. The masks leave such pairs undecided (the
 parts of one object, or two objects of one group); the other views' patches, through the shared
 Gaussians, decide them. Works on the raw patches (``consistent_masks: false``), without a merge.
+``undecided_weight`` softens instead of leaving out: an undecided pair keeps that weight in the
+denominator (0: left out; 1: the paper's push).
 
 The ``paper`` preset is the printed kernel with the released code's learning rate (0.005), counts and
 pixels: at the printed lr 1e-5 the loss does not move in 1,500 iterations on a default room, at
@@ -96,6 +98,7 @@ class ContrastiveParams:
     log_every: int = 10
     query: dict = field(default_factory=dict)  # QueryParams overrides, used when the lift is queried
     undecided: Literal["push", "ignore"] = "push"  # pairs of patches under one mask (module docstring)
+    undecided_weight: float = 0.0  # under ``ignore``: the weight such a pair keeps in the denominator
 
     def __post_init__(self) -> None:
         for key, value in PRESET_VALUES[self.preset].items():
@@ -106,6 +109,8 @@ class ContrastiveParams:
                              f"{self.iterations}, {self.pixels}, {self.pool_pixels}")
         if self.undecided not in ("push", "ignore"):
             raise ValueError(f"undecided must be 'push' or 'ignore', got {self.undecided!r}")
+        if not 0.0 <= self.undecided_weight <= 1.0:
+            raise ValueError(f"undecided_weight must lie in [0, 1], got {self.undecided_weight}")
         if not (self.lr > 0 and self.temperature > 0 and self.temperature_pos > 0 and self.temperature_neg > 0):
             raise ValueError("lr and the temperatures must be > 0")
 
@@ -147,7 +152,7 @@ def _ignored(related: Tensor, rows: Tensor, cols: Tensor) -> Tensor:
 
 def contrastive_loss(features: Tensor, labels: Tensor, kernel: str = "official", temperature: float = 0.01,
                      temperature_pos: float = 100.0, temperature_neg: float = 1.0, chunk: int = 2048,
-                     related: Tensor | None = None) -> Tensor:
+                     related: Tensor | None = None, undecided_weight: float = 0.0) -> Tensor:
     """The contrastive loss over P sampled pixels (module docstring).
 
     Cheap form: pixels are sorted by instance, so the positives of an anchor are one diagonal block.
@@ -164,7 +169,8 @@ def contrastive_loss(features: Tensor, labels: Tensor, kernel: str = "official",
         kernel: "official", "printed" or "gaussian".
         chunk: anchor rows per block of the full pass (bounds memory at chunk x P).
         related: optional [L, L] bool by label value (L > every label): pairs of two different labels
-            marked True are left out of the denominator (``undecided: ignore``, :func:`related_patches`).
+            marked True are left out of the denominator (``undecided: ignore``, :func:`related_patches`),
+            or keep ``undecided_weight`` there.
     Returns:
         scalar loss (the anchors' sum over P).
     """
@@ -180,8 +186,11 @@ def contrastive_loss(features: Tensor, labels: Tensor, kernel: str = "official",
         den = torch.cat([k_neg(_sq_dist(f[a:a + chunk], f)).sum(1) for a in range(0, p, chunk)])
     else:
         related = torch.as_tensor(related, dtype=torch.bool)
-        den = torch.cat([torch.where(_ignored(related, lab[a:a + chunk], lab), 0.0, k_neg(_sq_dist(f[a:a + chunk], f))).sum(1)
-                         for a in range(0, p, chunk)])
+        rows = []
+        for a in range(0, p, chunk):
+            k = k_neg(_sq_dist(f[a:a + chunk], f))
+            rows.append(torch.where(_ignored(related, lab[a:a + chunk], lab), k * undecided_weight, k).sum(1))
+        den = torch.cat(rows)
     _, counts = torch.unique_consecutive(lab, return_counts=True)
     nums, fixes = [], []
     start = 0
@@ -212,22 +221,26 @@ def contrastive_loss_reference(features: Tensor, labels: Tensor, **kwargs) -> Te
     for u in range(f.shape[0]):
         d2 = ((f[u][None] - f) ** 2).sum(1)
         same = labels == labels[u]
-        # the pairs left undecided count nowhere: drop them from the anchor's row before any sum
-        kept = torch.ones_like(same) if related is None else ~(torch.as_tensor(related)[int(labels[u])][labels] & ~same)
-        d2, same = d2[kept], same[kept]
+        # the undecided pairs weigh undecided_weight (0: dropped from the anchor's row before any sum)
+        weight = torch.ones_like(d2)
+        if related is not None:
+            undecided = torch.as_tensor(related)[int(labels[u])][labels] & ~same
+            weight[undecided] = kwargs.get("undecided_weight", 0.0)
+        kept = weight > 0
+        d2, same, weight = d2[kept], same[kept], weight[kept]
         own = int(kept[:u].sum())  # the anchor's place in the kept row
         if kernel == "official":
             tau = torch.where(same, kwargs.get("temperature_pos", 100.0), kwargs.get("temperature_neg", 1.0))
-            k = torch.exp(torch.exp(-d2 / tau.double()))
+            k = torch.exp(torch.exp(-d2 / tau.double())) * weight
             others = same.clone()
             others[own] = False
             if others.any():
                 terms.append(-torch.log(k[others].sum() / k.sum()))
             continue
         if kernel == "gaussian":
-            k = torch.exp(-kwargs.get("temperature", 0.01) * d2)
+            k = torch.exp(-kwargs.get("temperature", 0.01) * d2) * weight
         else:
-            k = torch.exp(torch.exp(-kwargs.get("temperature", 0.01) * d2))
+            k = torch.exp(torch.exp(-kwargs.get("temperature", 0.01) * d2)) * weight
         terms.append(-torch.log(k[same].sum() / k.sum()))
     if not terms:
         return f.sum() * 0.0
@@ -327,7 +340,7 @@ class ContrastiveTrainer:
                                      self.params.near)
         loss = fused_contrastive_loss if self.params.fused else contrastive_loss
         return loss(rendered, torch.from_numpy(self.pools.labels[v][rows]), related=self.pools.related[v],
-                    **self.kwargs)
+                    undecided_weight=self.params.undecided_weight, **self.kwargs)
 
     def step(self, path: str | None = None) -> float:
         if (path or self.params.path) == "sparse" and self.params.fused:
@@ -345,7 +358,7 @@ class ContrastiveTrainer:
         w = self.pools.weights[v]
         rendered = _gather_rows(w.indptr, w.indices, w.weights, rows, self.features.detach().numpy())
         loss, g_rendered = loss_and_grad(rendered, self.pools.labels[v][rows], self._consts,
-                                         related=self.pools.related[v])
+                                         related=self.pools.related[v], undecided_weight=self.params.undecided_weight)
         scatter_rows_add(w.indptr, w.indices, w.weights, rows, g_rendered, self._grad, numba.get_num_threads())
         self.optimizer.step(self._grad)  # leaves the buffer zero
         return loss

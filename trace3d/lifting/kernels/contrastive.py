@@ -9,7 +9,8 @@ For P sampled pixels sorted by instance (block [s_u, e_u) = u's instance), featu
 with k_uv = k_pos(d2_uv) inside a block and k_neg(d2_uv) across blocks, d2_uv = ||f_u - f_v||^2 (kind 2,
 the released loss: num_u leaves v = u out, and an anchor whose num_u is then empty adds nothing, its
 1/den_u and 1/num_u taken as 0 below). Pairs of two different instances that the caller marks as
-undecided (``related``, the lift's ``undecided: ignore``) weigh 0: they leave den and the gradient.
+undecided (``related``, the lift's ``undecided: ignore``) weigh ``undecided_weight`` (0: they leave den and
+the gradient).
 Because k is symmetric in (u, v), the gradient collects both roles of a pair:
 
     dL/df_u = 2/P sum_v  c_uv (f_u - f_v),
@@ -419,9 +420,10 @@ def _workspace(nb: int, dp: int):
 _NO_RELATION = np.ones((1, 1), np.float32)
 
 
-def _keep_slots(labels: np.ndarray, order: np.ndarray, related, pp: int) -> tuple[np.ndarray, np.ndarray]:
-    """The keep matrix [S, S] float32 (1: the pair counts, 0: undecided) over the S distinct labels of the
-    sample, and each sorted pixel's slot in it (padding: slot 0, its validity already 0). Without
+def _keep_slots(labels: np.ndarray, order: np.ndarray, related, pp: int,
+                undecided_weight: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """The keep matrix [S, S] float32 (1: the pair counts, ``undecided_weight``: undecided) over the S
+    distinct labels of the sample, and each sorted pixel's slot in it (padding: slot 0, its validity already 0). Without
     ``related``, one slot with keep 1 (the same bits as no factor at all: w * 1 = w)."""
     slot = np.zeros(pp, np.int64)
     if related is None:
@@ -431,24 +433,25 @@ def _keep_slots(labels: np.ndarray, order: np.ndarray, related, pp: int) -> tupl
     if values.size and (values.min() < 0 or values.max() >= related.shape[0]):
         raise Trace3DError(f"contrastive loss: a label ({int(values.max())}) lies outside the relation matrix "
                            f"of {related.shape[0]} labels.")
-    keep = (~related[np.ix_(values, values)]).astype(np.float32)
+    keep = np.where(related[np.ix_(values, values)], np.float32(undecided_weight), np.float32(1.0)).astype(np.float32)
     np.fill_diagonal(keep, 1.0)  # one instance's pairs always count (lo/hi decide their kernel)
     slot[:labels.size] = inverse.reshape(-1)[order]
     return keep, slot
 
 
-def loss_and_grad(features: np.ndarray, labels: np.ndarray, consts: tuple, want_grad: bool = True, related=None):
+def loss_and_grad(features: np.ndarray, labels: np.ndarray, consts: tuple, want_grad: bool = True, related=None,
+                  undecided_weight: float = 0.0):
     """The contrastive loss (float) and, if ``want_grad``, its gradient [P, D] float32 w.r.t. ``features``
     ([P, D] float, any order; ``labels`` [P] int) by the fused kernel, without torch or autograd:
     the lifting's fast step calls it directly, :func:`fused_contrastive_loss` wraps it for autograd.
     Pads P to a multiple of :data:`TILE` and D to one of :data:`LANES` (module docstring). ``related``:
-    optional [L, L] bool by label value, the pairs of two different labels left out (undecided)."""
+    optional [L, L] bool by label value, the pairs of two different labels that weigh ``undecided_weight``."""
     p, dim = features.shape
     pp = -(-p // TILE) * TILE
     dp = -(-dim // LANES) * LANES
     labels = np.ascontiguousarray(labels, np.int64)
     order, ft, norms, starts, ends, valid = _prepare(features, labels, pp, dp)
-    keep, slot = _keep_slots(labels, order, related, pp)
+    keep, slot = _keep_slots(labels, order, related, pp, undecided_weight)
     ti, tj, dkt, pden, pnum, gpart = _workspace(pp // TILE, dp)
     a_pos, a_neg, kind = consts
     _pair_tiles(ft, norms, starts, ends, valid, a_pos, a_neg, kind, ti, tj, dkt, pden, pnum, keep, slot)
@@ -472,9 +475,10 @@ def kernel_constants(kernel: str, temperature: float, temperature_pos: float, te
 
 class _FusedLoss(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, features: Tensor, labels: Tensor, consts: tuple, related) -> Tensor:
+    def forward(ctx, features: Tensor, labels: Tensor, consts: tuple, related, undecided_weight) -> Tensor:
         want = features.requires_grad
-        loss, grad = loss_and_grad(features.detach().float().numpy(), labels.numpy(), consts, want, related)
+        loss, grad = loss_and_grad(features.detach().float().numpy(), labels.numpy(), consts, want, related,
+                                   undecided_weight)
         if want:
             ctx.save_for_backward(torch.from_numpy(grad).to(features.dtype))
         return torch.tensor(loss, dtype=features.dtype)
@@ -482,11 +486,12 @@ class _FusedLoss(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_loss: Tensor):
         (g,) = ctx.saved_tensors
-        return g * v_loss, None, None, None
+        return g * v_loss, None, None, None, None
 
 
 def fused_contrastive_loss(features: Tensor, labels: Tensor, kernel: str = "official", temperature: float = 0.01,
-                           temperature_pos: float = 100.0, temperature_neg: float = 1.0, related=None) -> Tensor:
+                           temperature_pos: float = 100.0, temperature_neg: float = 1.0, related=None,
+                           undecided_weight: float = 0.0) -> Tensor:
     """The contrastive loss of :func:`trace3d.lifting.contrastive.contrastive_loss` by the fused CPU
     kernel: same value and gradient w.r.t. ``features`` ([P, D], CPU), the gradient computed in the same
     call (module docstring)."""
@@ -496,4 +501,4 @@ def fused_contrastive_loss(features: Tensor, labels: Tensor, kernel: str = "offi
         return features.sum() * 0.0
     consts = kernel_constants(kernel, temperature, temperature_pos, temperature_neg)
     related = None if related is None else np.asarray(related, bool)
-    return _FusedLoss.apply(features, labels.to(torch.int64), consts, related)
+    return _FusedLoss.apply(features, labels.to(torch.int64), consts, related, float(undecided_weight))
