@@ -112,14 +112,14 @@ def _lane_sum(part):
 
 @njit(inline="always", fastmath=PAIR_MATH)
 def _kernel_row(grow, nu, nv, wu, wv, a_pos, a_neg, kind, lo, hi, drow, col_den, col_num, part_den, part_num,
-                self_col, krow, sv):
+                self_col):
     """Kernel values of one anchor row over the tile's columns, scale ``a_pos`` inside the anchor's
     instance (columns [lo, hi)) and ``a_neg`` outside: k' into ``drow``, k into the column sums (and the
     numerator's inside the instance), and the row's sums of k as 16 lane partials (``part_den``, all
     columns; ``part_num``, the instance's), one vector of 16 columns at a time. Column ``self_col`` (the
-    anchor itself under kind 2; -1: none) counts in the denominator only, with k' = 0. A pair weighs
-    ``krow[sv[v]]`` besides the pixels' validity (1, or 0 for an undecided pair: the anchor's row of the
-    keep matrix, indexed by the columns' instance slots)."""
+    anchor itself under kind 2; -1: none) counts in the denominator only, with k' = 0. ``wv`` holds the
+    columns' weights: their validity, times the anchor's row of the keep matrix when there is one (an
+    undecided pair weighs ``undecided_weight``; gathered before the call, so that this loop vectorises)."""
     for lane in range(LANES):
         part_den[lane] = np.float32(0.0)
         part_num[lane] = np.float32(0.0)
@@ -130,7 +130,7 @@ def _kernel_row(grow, nu, nv, wu, wv, a_pos, a_neg, kind, lo, hi, drow, col_den,
             a = a_pos if inside else a_neg
             d2 = max(nu + nv[v] - np.float32(2.0) * grow[v], np.float32(0.0))
             e = _exp_neg(a * d2)
-            w = wu * wv[v] * krow[sv[v]]
+            w = wu * wv[v]
             if kind == 0:
                 k = e * w
                 dkv = -a * k
@@ -147,7 +147,7 @@ def _kernel_row(grow, nu, nv, wu, wv, a_pos, a_neg, kind, lo, hi, drow, col_den,
 
 
 @njit(parallel=True, cache=True, fastmath=PAIR_MATH)
-def _pair_tiles(ft, norms, starts, ends, valid, a_pos, a_neg, kind, ti, tj, dkt, pden, pnum, keep, slot):
+def _pair_tiles(ft, norms, starts, ends, valid, a_pos, a_neg, kind, ti, tj, dkt, pden, pnum, keep, slot, related):
     """First pass, over the tiles (I, J), I <= J, of the symmetric pair matrix.
 
     Per pair: d2 from the tile's Gram block, the kernel value k and its derivative k'(d2) (times
@@ -177,6 +177,10 @@ def _pair_tiles(ft, norms, starts, ends, valid, a_pos, a_neg, kind, ti, tj, dkt,
         nv = norms[v0:v0 + TILE]
         wv = valid[v0:v0 + TILE]
         sv = slot[v0:v0 + TILE]
+        wrow = np.empty(TILE, np.float32)  # the columns' weights for the current anchor
+        if not related:
+            for v in range(TILE):
+                wrow[v] = wv[v]
         col_den = np.zeros(TILE, np.float32)
         col_num = np.zeros(TILE, np.float32)
         part_den = np.empty(LANES, np.float32)
@@ -186,8 +190,12 @@ def _pair_tiles(ft, norms, starts, ends, valid, a_pos, a_neg, kind, ti, tj, dkt,
             wu = valid[u0 + u]
             lo, hi = _anchor_span(starts, ends, u0 + u, v0)
             self_col = u if kind == 2 and i == j else -1  # kind 2: the anchor itself, denominator only
-            _kernel_row(gram[u], nu, nv, wu, wv, a_pos, a_neg, kind, lo, hi, dk[u], col_den, col_num, part_den,
-                        part_num, self_col, keep[slot[u0 + u]], sv)
+            if related:  # validity times the keep matrix's row of the anchor (1 or undecided_weight)
+                krow = keep[slot[u0 + u]]
+                for v in range(TILE):
+                    wrow[v] = wv[v] * krow[sv[v]]
+            _kernel_row(gram[u], nu, nv, wu, wrow, a_pos, a_neg, kind, lo, hi, dk[u], col_den, col_num, part_den,
+                        part_num, self_col)
             pden[j, u0 + u] = _lane_sum(part_den)
             pnum[j, u0 + u] = _lane_sum(part_num)
         if i != j:
@@ -424,7 +432,7 @@ def _keep_slots(labels: np.ndarray, order: np.ndarray, related, pp: int,
                 undecided_weight: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """The keep matrix [S, S] float32 (1: the pair counts, ``undecided_weight``: undecided) over the S
     distinct labels of the sample, and each sorted pixel's slot in it (padding: slot 0, its validity already 0). Without
-    ``related``, one slot with keep 1 (the same bits as no factor at all: w * 1 = w)."""
+    ``related``, one slot with keep 1 (unused: the kernel then takes the validity alone)."""
     slot = np.zeros(pp, np.int64)
     if related is None:
         return _NO_RELATION, slot
@@ -454,7 +462,8 @@ def loss_and_grad(features: np.ndarray, labels: np.ndarray, consts: tuple, want_
     keep, slot = _keep_slots(labels, order, related, pp, undecided_weight)
     ti, tj, dkt, pden, pnum, gpart = _workspace(pp // TILE, dp)
     a_pos, a_neg, kind = consts
-    _pair_tiles(ft, norms, starts, ends, valid, a_pos, a_neg, kind, ti, tj, dkt, pden, pnum, keep, slot)
+    _pair_tiles(ft, norms, starts, ends, valid, a_pos, a_neg, kind, ti, tj, dkt, pden, pnum, keep, slot,
+                related is not None)
     loss, inv_den, inv_num = _sums(pden, pnum, p)
     if not want_grad:
         return float(loss), None
