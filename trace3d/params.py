@@ -179,7 +179,8 @@ DECLARED_RANGES: dict[str, dict[str, str]] = {
         "plane_min_share": "[0, 1)", "plane_member": "[0, 1)", "max_area": "(0, 1]", "reference_pixels": ">= 1"},
     "trace3d.lifting.contrastive:ContrastiveParams": {
         "dim": ">= 1", "iterations": ">= 1", "pixels": ">= 2", "pool_pixels": ">= 2", "lr": "> 0",
-        "temperature": "> 0", "temperature_pos": "> 0", "temperature_neg": "> 0", "seed": ">= 0"},
+        "temperature": "> 0", "temperature_pos": "> 0", "temperature_neg": "> 0", "seed": ">= 0",
+        "undecided_weight": "[0, 1]"},
 }
 
 
