@@ -217,7 +217,9 @@ def test_seen_graph_shares_what_each_user_would_compute():
     weights[::97] = 0.0  # unseen Gaussians follow their nearest seen one
     shared = SeenGraph(means, features, weights, 12)
     f, w, edges = shared.seen_features, shared.seen_weights, shared.graph.edges
-    np.testing.assert_array_equal(shared.distances(), np.sqrt(((f[edges[:, 0]] - f[edges[:, 1]]) ** 2).sum(1)))
+    plain = np.sqrt(((f[edges[:, 0]] - f[edges[:, 1]]) ** 2).sum(1))
+    np.testing.assert_array_equal(shared.distances(), plain)
+    np.testing.assert_array_equal(edge_distances(f, edges, block=7), plain)  # blocks and a last partial one
     np.testing.assert_array_equal(shared.grow_order(), np.lexsort((edges[:, 1], edges[:, 0], shared.distances())))
     assert shared.threshold(5000, 3) == feature_threshold(f, w, edges, 5000, 3)
     swapped = SeenGraph(means, features, weights, 12, dataclasses.replace(shared.graph, edges=edges[::-1].copy()))
