@@ -12,7 +12,8 @@ import trace3d.tracing.merge as merge
 from trace3d.errors import SceneFormatError
 from trace3d.masks.patches import PatchHierarchy
 from trace3d.tracing.git import GITStats, GITVisible
-from trace3d.tracing.merge import MergeParams, associate, merge_all, visible_lists
+from trace3d.tracing.merge import (MergeParams, ViewMerge, associate, label_counts, merge_all, merged_label_rows,
+                                   merged_lists, visible_lists)
 
 pytestmark = pytest.mark.usefixtures("single_numba_thread")
 
@@ -51,6 +52,31 @@ def test_visible_lists_are_the_visible_entries_row_major(monkeypatch, top, block
     np.testing.assert_array_equal(values, labels[seen])
     assert indices.dtype == np.int16
     assert values.dtype == (np.int16 if top <= 32767 else np.int32)
+
+
+@pytest.mark.parametrize("block_entries", [1, 7, 1 << 21])
+def test_merged_lists_and_label_counts_are_read_from_the_label_lists(monkeypatch, block_entries):
+    """The association's lists read from the labels' lists (:func:`merged_lists`) are the lists of
+    :func:`merged_label_rows` (the twin: a pass over the [N, L] labels), also where a label has no entry in
+    its view's lut (dropped) or every lut is short; the views' label counts are each view's bincount."""
+    monkeypatch.setattr(merge, "ROW_BLOCK_ENTRIES", block_entries)
+    stats = random_table(6, 120, 5, 6, 0.5)
+    visible = stats.visible(0.0)
+    labels = visible_lists(lambda lo, hi: stats.label[lo:hi], visible)
+    rng = np.random.default_rng(0)
+    for sizes in ([7, 7, 7, 7, 7], [7, 4, 7, 1, 6]):  # [P + 1] luts; shorter ones drop the labels beyond them
+        merges = [ViewMerge(f"v{v}", np.r_[0, rng.integers(1, 4, size - 1)], np.zeros((0, 2), np.int64), np.zeros(0),
+                            np.zeros(0, np.int64), np.zeros(0, bool)) for v, size in enumerate(sizes)]
+        fast = merged_lists(labels, merges)
+        slow = visible_lists(lambda lo, hi, merges=merges: merged_label_rows(stats, merges, lo, hi), visible)
+        for a, b in zip(fast, slow):
+            np.testing.assert_array_equal(a, b)
+            assert a.dtype == b.dtype
+        assert len(fast[1]) < len(labels[1]) or sizes[1] == 7  # the short luts dropped entries
+    counts = label_counts(labels, 5, 9)
+    for v in range(5):
+        seen = visible[:, v] & (stats.label[:, v] >= 0)
+        np.testing.assert_array_equal(counts[v], np.bincount(stats.label[seen, v], minlength=9))
 
 
 @pytest.mark.parametrize("min_visibility", [0.0, 0.3])

@@ -435,6 +435,49 @@ def _histograms_of_lists(lists, views: int, num_source: int, num_labels: int):
                                           int(num_labels))
 
 
+def label_counts(lists, views: int, width: int) -> np.ndarray:
+    """[views, width] int64: per view, its visible Gaussians per label, from :func:`visible_lists`' lists
+    (labels below ``width``; the counts ``merge_view`` takes of a view's column, all views in one pass)."""
+    indptr, indices, values = lists
+    counts = np.zeros(views * width, np.int64)
+    for lo in range(0, len(indices), ROW_BLOCK_ENTRIES):  # entries a block at a time: no [nnz] int64 temporary
+        key = indices[lo:lo + ROW_BLOCK_ENTRIES].astype(np.int64) * width + values[lo:lo + ROW_BLOCK_ENTRIES]
+        counts += np.bincount(key, minlength=views * width)
+    return counts.reshape(views, width)
+
+
+def merged_lists(lists, merges: Sequence["ViewMerge"]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`visible_lists` of :func:`merged_label_rows` from the labels' own lists (``visible_lists`` of
+    the labels with the same visible mask): every entry whose label has an entry in its view's lut, the
+    label replaced by its merged instance there; the same arrays without a pass over the [N, L] labels
+    (entries a block at a time). The values are int16 when every lut's largest instance fits it, else
+    int32 (the histograms do not depend on the width)."""
+    indptr, indices, values = lists
+    sizes = np.array([len(m.lut) for m in merges], np.int64)
+    offsets = np.zeros(len(merges) + 1, np.int64)
+    np.cumsum(sizes, out=offsets[1:])
+    flat = np.concatenate([np.asarray(m.lut, np.int64) for m in merges]) if merges else np.zeros(0, np.int64)
+    kind = _narrowest(max((int(m.lut.max(initial=-1)) for m in merges), default=-1))
+    out_indices = np.empty_like(indices)
+    out_values = np.empty(len(values), kind)
+    dropped, at = [], 0
+    for lo in range(0, len(indices), ROW_BLOCK_ENTRIES):
+        view = indices[lo:lo + ROW_BLOCK_ENTRIES].astype(np.int64)
+        label = values[lo:lo + ROW_BLOCK_ENTRIES].astype(np.int64)
+        keep = label < sizes[view]
+        if not keep.all():
+            dropped.append(lo + np.flatnonzero(~keep))
+        kept = int(keep.sum())
+        out_indices[at:at + kept] = indices[lo:lo + ROW_BLOCK_ENTRIES][keep]
+        out_values[at:at + kept] = flat[offsets[view[keep]] + label[keep]]
+        at += kept
+    if not dropped:
+        return indptr, out_indices, out_values
+    dropped = np.concatenate(dropped)
+    out_indptr = indptr - np.searchsorted(dropped, indptr, side="left")  # entries dropped before each row
+    return out_indptr, out_indices[:at].copy(), out_values[:at].copy()
+
+
 def all_source_histograms(labels: np.ndarray, visible: np.ndarray, num_source: int, num_labels: int):
     """:func:`source_histograms` of every source view, yielded in order as [num_source, L, num_labels].
 
@@ -672,7 +715,7 @@ def merge_view(stats: GITStats, view: int, num_patches: int, pairs: np.ndarray, 
                min_visibility: float, hist: np.ndarray | None = None, rule: VoteRule = VoteRule(),
                visible: np.ndarray | None = None, grouping: str = "union_find", rank: np.ndarray | None = None,
                collapsed: np.ndarray | None = None, groups: Sequence[np.ndarray] | None = None,
-               start: np.ndarray | None = None) -> ViewMerge:
+               start: np.ndarray | None = None, counts: np.ndarray | None = None) -> ViewMerge:
     """Merge the patches of view ``view`` (ids 1..num_patches; 0 is uncovered and never merged).
 
     ``hist``: the view's [A, L, T] source histograms when already computed (:func:`all_source_histograms`);
@@ -682,7 +725,8 @@ def merge_view(stats: GITStats, view: int, num_patches: int, pairs: np.ndarray, 
     ``rank`` ([P + 1], :func:`released_ids`; default: patch ids), per group of ``groups`` (default: one).
     ``collapsed``: [C, 2] pairs joined without a vote; ``start``: [P + 1] the id each patch carries
     before the vote (the released grouping relabels ids as the released code relabels pixels: a giver's
-    id becomes the receiver's, for every patch carrying it; default: its own).
+    id becomes the receiver's, for every patch carrying it; default: its own). ``counts``: the view's
+    visible Gaussians per label when already counted (:func:`label_counts`; at least ``len(hist)`` long).
     """
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
     if visible is None:
@@ -691,12 +735,18 @@ def merge_view(stats: GITStats, view: int, num_patches: int, pairs: np.ndarray, 
     num_source = max(num_patches + 1, int(stats.num_labels[view]))
     if hist is None:
         hist = source_histograms(stats.label, visible, view, num_source, num_labels)
-    source = visible[:, view] & (stats.label[:, view] >= 0)
-    counts = np.bincount(stats.label[source, view], minlength=len(hist)).astype(np.int64)
+    source = None
+    if counts is None:
+        source = visible[:, view] & (stats.label[:, view] >= 0)
+        counts = np.bincount(stats.label[source, view], minlength=len(hist)).astype(np.int64)
+    else:
+        counts = np.asarray(counts, np.int64)[:len(hist)]
     if rule.min_gaussian_views > 0:
         sims, omega, supported = vote(hist, pairs, counts, VoteRule(rule.uncovered, rule.min_gaussians,
                                                                      rule.min_view_share, rule.min_views))
         if len(pairs):
+            if source is None:
+                source = visible[:, view] & (stats.label[:, view] >= 0)
             rows_all = np.nonzero(source)[0]
             masked = stats.label[rows_all].astype(np.int32, copy=False)  # a copy (rows), masked in place
             at_view = masked[:, view].copy()
@@ -763,19 +813,24 @@ def merged_label_rows(stats, merges: Sequence[ViewMerge], lo: int, hi: int) -> n
 
 
 def associate(stats: GITStats, merges: Sequence[ViewMerge], min_visibility: float,
-              share: float = 0.5, visible: np.ndarray | None = None) -> list[np.ndarray]:
+              share: float = 0.5, visible: np.ndarray | None = None, label_lists=None) -> list[np.ndarray]:
     """Global instance ids: for every view, [G_v + 1] lut from merged instance to a global id (0 -> 0).
 
     Instances (v, m) and (w, m') link when more than ``share`` of each one's Gaussians that are
     co-visible in the other view fall into the other; links are joined strongest first, never
     joining two instances of the same view. ``visible``: ``stats.visible(min_visibility)`` when
     already computed. The merged labels are built a row block at a time into per-Gaussian lists
-    (:func:`visible_lists`), never as an [N, L] table.
+    (:func:`visible_lists`), never as an [N, L] table; ``label_lists``: the labels' own lists with this
+    visible mask when made already (:func:`merge_all`'s): the merged lists are then read from them
+    (:func:`merged_lists`, the same entries).
     """
     views = len(merges)
-    if visible is None:
-        visible = stats.visible(min_visibility)
-    lists = visible_lists(lambda lo, hi: merged_label_rows(stats, merges, lo, hi), visible)
+    if label_lists is not None:
+        lists = merged_lists(label_lists, merges)
+    else:
+        if visible is None:
+            visible = stats.visible(min_visibility)
+        lists = visible_lists(lambda lo, hi: merged_label_rows(stats, merges, lo, hi), visible)
     counts = [m.num_instances for m in merges]
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     width = int(max(counts, default=0)) + 1
@@ -830,7 +885,11 @@ def merge_all(stats: GITStats | GITVisible, hierarchies: Sequence,
     num_labels = int(stats.num_labels.max(initial=1))
     num_source = max(num_labels, max((h.num_patches + 1 for h in hierarchies), default=1))
     visible = stats.visible(params.min_visibility)
-    every = all_source_histograms(stats.label, visible, num_source, num_labels)
+    # the labels' per-Gaussian lists: the source histograms, every view's label counts and (through the
+    # merges' luts) the association's lists are read from them
+    lists = visible_lists(lambda lo, hi: stats.label[lo:hi], visible)
+    every = _histograms_of_lists(lists, stats.label.shape[1], num_source, num_labels)
+    counts = label_counts(lists, stats.label.shape[1], num_source) if params.method != "hierarchical" else None
     rule = params.rule
     if params.method == "hierarchical":
         comember = stack_comembership([comembership(h, num_labels, params.mask_weight) for h in hierarchies],
@@ -846,10 +905,11 @@ def merge_all(stats: GITStats | GITVisible, hierarchies: Sequence,
         rank = released_ids(hierarchy) if params.grouping == "released_greedy" else None
         merges.append(merge_view(stats, v, hierarchy.num_patches, c.pairs, params.threshold, params.min_visibility,
                                  hist=hist, rule=rule, visible=visible, grouping=params.grouping, rank=rank,
-                                 collapsed=c.collapsed, groups=c.groups, start=c.start))
+                                 collapsed=c.collapsed, groups=c.groups, start=c.start, counts=counts[v]))
     hist = None  # the last histogram block
-    every.close()  # zip stops on the hierarchies: the generator would hold its per-Gaussian lists
-    luts = associate(stats, merges, params.min_visibility, params.association_share, visible=visible)
+    every.close()
+    luts = associate(stats, merges, params.min_visibility, params.association_share, visible=visible,
+                     label_lists=lists)
     return merges, luts
 
 
