@@ -838,12 +838,14 @@ def associate(stats: GITStats, merges: Sequence[ViewMerge], min_visibility: floa
     for v, hist in enumerate(_histograms_of_lists(lists, stats.label.shape[1], width, width)):
         if counts[v] == 0:
             continue
-        hist = hist.astype(np.float64)  # [G+1, L, G'+1]
-        fwd_total = hist.sum(axis=2)  # [G+1, L]: Gaussians of (v, m) co-visible in w
-        rev_total = hist.sum(axis=0)  # [L, G'+1]: Gaussians of (w, m') co-visible in v
-        block = hist[1:, v + 1:, 1:]  # later views only: each pair of views once
-        fwd = block / np.maximum(fwd_total[1:, v + 1:, None], 1)
-        rev = block / np.maximum(rev_total[None, v + 1:, 1:], 1)
+        # [G+1, L, G'+1] counts; later views only: each pair of views once (the totals are sums of
+        # integers, exact in any order and type: the shares are the same floats as over the whole float table)
+        later = hist[:, v + 1:, :]
+        fwd_total = later[1:].sum(axis=2, dtype=np.int64)  # [G, L']: Gaussians of (v, m) co-visible in w
+        rev_total = later.sum(axis=0, dtype=np.int64)[:, 1:]  # [L', G']: Gaussians of (w, m') co-visible in v
+        block = later[1:, :, 1:].astype(np.float64)
+        fwd = block / np.maximum(fwd_total[:, :, None], 1)
+        rev = block / np.maximum(rev_total[None], 1)
         strength = np.minimum(fwd, rev)
         m, w, mp = np.nonzero(strength > share)
         w_abs = w + v + 1
