@@ -13,7 +13,7 @@ from trace3d.errors import SceneFormatError
 from trace3d.masks.patches import PatchHierarchy
 from trace3d.tracing.git import GITStats, GITVisible
 from trace3d.tracing.merge import (MergeParams, ViewMerge, associate, label_counts, merge_all, merged_label_rows,
-                                   merged_lists, visible_lists)
+                                   merged_lists, view_links, view_links_dense, visible_lists)
 
 pytestmark = pytest.mark.usefixtures("single_numba_thread")
 
@@ -77,6 +77,28 @@ def test_merged_lists_and_label_counts_are_read_from_the_label_lists(monkeypatch
     for v in range(5):
         seen = visible[:, v] & (stats.label[:, v] >= 0)
         np.testing.assert_array_equal(counts[v], np.bincount(stats.label[seen, v], minlength=9))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_view_links_of_the_co_visible_pairs_are_the_whole_tables(seed):
+    """The association's links from the pairs that share a Gaussian (:func:`view_links`) are the twin's
+    over the whole float table: the same strengths, bit for bit, in the same order; exact ties with the
+    share included (a count of 1 of 2), views whose later instances are fewer than the table's width."""
+    rng = np.random.default_rng(seed)
+    views, width = 6, 5
+    counts = [4, 3, 0, 4, 2, 4]  # instances per view (the table is as wide as the most)
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    for v in range(views):
+        hist = (rng.random((width, views, width)) < 0.3) * rng.integers(1, 4, (width, views, width))
+        hist[1, -1, :] = 0
+        hist[1, -1, 1] = 1  # a share of exactly 1/2 against another 1 of the same instance
+        hist[1, -1, 2] = 1
+        hist = hist.astype(np.int32)
+        for share in (0.5, 0.3):
+            fast = view_links(hist, v, share, counts, offsets)
+            assert fast == view_links_dense(hist, v, share, counts, offsets)
+            assert all(type(s) is float for s, _, _ in fast)
+        assert v == views - 1 or fast  # something links: the comparison means something
 
 
 @pytest.mark.parametrize("min_visibility", [0.0, 0.3])

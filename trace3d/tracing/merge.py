@@ -812,6 +812,46 @@ def merged_label_rows(stats, merges: Sequence[ViewMerge], lo: int, hi: int) -> n
     return out
 
 
+def view_links(hist: np.ndarray, v: int, share: float, counts: Sequence[int],
+               offsets: np.ndarray) -> list[tuple[float, int, int]]:
+    """The links of view ``v``'s instances to later views' (:func:`associate`): (strength, a, b) for every
+    (m, w, m') of the [G+1, L, G'+1] co-visibility counts ``hist`` with w > v whose strength (the least of
+    the two shares) exceeds ``share``; a, b: global positions (``offsets`` [L + 1], ``counts`` [L]
+    instances per view). Only the pairs that share a Gaussian are divided out: the totals are sums of
+    integers (exact in any order and type) and a pair sharing none has strength 0, never above
+    ``share`` > 0; the same floats as :func:`view_links_dense` (the twin, over the whole table)."""
+    later = hist[:, v + 1:, :]
+    fwd_total = later[1:].sum(axis=2, dtype=np.int64)  # [G, L']: Gaussians of (v, m) co-visible in w
+    rev_total = later.sum(axis=0, dtype=np.int64)[:, 1:]  # [L', G']: Gaussians of (w, m') co-visible in v
+    block = later[1:, :, 1:]
+    m, w, mp = np.nonzero(block)
+    both = block[m, w, mp].astype(np.float64)
+    strength = np.minimum(both / np.maximum(fwd_total[m, w], 1), both / np.maximum(rev_total[w, mp], 1))
+    keep = strength > share
+    m, w, mp, strength = m[keep], w[keep], mp[keep], strength[keep]
+    w_abs = w + v + 1
+    ok = mp < np.asarray(counts)[w_abs]
+    return [(float(s_), int(a_), int(b_))
+            for s_, a_, b_ in zip(strength[ok], offsets[v] + m[ok], offsets[w_abs[ok]] + mp[ok])]
+
+
+def view_links_dense(hist: np.ndarray, v: int, share: float, counts: Sequence[int],
+                     offsets: np.ndarray) -> list[tuple[float, int, int]]:
+    """:func:`view_links` over the whole table in float64 (the twin)."""
+    hist = hist.astype(np.float64)  # [G+1, L, G'+1]
+    fwd_total = hist.sum(axis=2)  # [G+1, L]
+    rev_total = hist.sum(axis=0)  # [L, G'+1]
+    block = hist[1:, v + 1:, 1:]  # later views only: each pair of views once
+    fwd = block / np.maximum(fwd_total[1:, v + 1:, None], 1)
+    rev = block / np.maximum(rev_total[None, v + 1:, 1:], 1)
+    strength = np.minimum(fwd, rev)
+    m, w, mp = np.nonzero(strength > share)
+    w_abs = w + v + 1
+    ok = mp < np.asarray(counts)[w_abs]
+    return [(float(s_), int(a_), int(b_))
+            for s_, a_, b_ in zip(strength[m, w, mp][ok], offsets[v] + m[ok], offsets[w_abs[ok]] + mp[ok])]
+
+
 def associate(stats: GITStats, merges: Sequence[ViewMerge], min_visibility: float,
               share: float = 0.5, visible: np.ndarray | None = None, label_lists=None) -> list[np.ndarray]:
     """Global instance ids: for every view, [G_v + 1] lut from merged instance to a global id (0 -> 0).
@@ -838,20 +878,7 @@ def associate(stats: GITStats, merges: Sequence[ViewMerge], min_visibility: floa
     for v, hist in enumerate(_histograms_of_lists(lists, stats.label.shape[1], width, width)):
         if counts[v] == 0:
             continue
-        # [G+1, L, G'+1] counts; later views only: each pair of views once (the totals are sums of
-        # integers, exact in any order and type: the shares are the same floats as over the whole float table)
-        later = hist[:, v + 1:, :]
-        fwd_total = later[1:].sum(axis=2, dtype=np.int64)  # [G, L']: Gaussians of (v, m) co-visible in w
-        rev_total = later.sum(axis=0, dtype=np.int64)[:, 1:]  # [L', G']: Gaussians of (w, m') co-visible in v
-        block = later[1:, :, 1:].astype(np.float64)
-        fwd = block / np.maximum(fwd_total[:, :, None], 1)
-        rev = block / np.maximum(rev_total[None], 1)
-        strength = np.minimum(fwd, rev)
-        m, w, mp = np.nonzero(strength > share)
-        w_abs = w + v + 1
-        mp_ok = mp < np.asarray(counts)[w_abs]
-        for s_, a_, b_ in zip(strength[m, w, mp][mp_ok], offsets[v] + m[mp_ok], offsets[w_abs[mp_ok]] + mp[mp_ok]):
-            links.append((float(s_), int(a_), int(b_)))
+        links += view_links(hist, v, share, counts, offsets)
     total = int(offsets[-1])
     uf = UnionFind(total)
     view_of = np.repeat(np.arange(views), counts)
