@@ -14,6 +14,7 @@ from trace3d.masks.patches import PatchHierarchy
 from trace3d.tracing.git import GITStats, GITVisible
 from trace3d.tracing.merge import (MergeParams, ViewMerge, associate, label_counts, merge_all, merged_label_rows,
                                    merged_lists, view_links, view_links_dense, visible_lists)
+from trace3d.tracing.merge import _vote_sums, _vote_sums_numpy
 
 pytestmark = pytest.mark.usefixtures("single_numba_thread")
 
@@ -77,6 +78,24 @@ def test_merged_lists_and_label_counts_are_read_from_the_label_lists(monkeypatch
     for v in range(5):
         seen = visible[:, v] & (stats.label[:, v] >= 0)
         np.testing.assert_array_equal(counts[v], np.bincount(stats.label[seen, v], minlength=9))
+
+
+@pytest.mark.parametrize("first_label", [0, 1])
+def test_vote_sums_kernel_gives_the_floats_of_the_numpy_sums(first_label):
+    """The vote's integer sums (kernel) as float64 are the float64 numpy sums of the twin, bit for bit, with
+    counts up to a default room's (80,000 Gaussians) and views that do not vote."""
+    rng = np.random.default_rng(first_label)
+    patches, views, labels = 9, 7, 6
+    hist = (rng.random((patches, views, labels)) < 0.4) * rng.integers(0, 80000, (patches, views, labels))
+    hist = hist.astype(np.int32)
+    n = hist[:, :, first_label:].sum(axis=2, dtype=np.int64)
+    a, b = np.triu_indices(patches, 1)
+    vote_views = rng.random((len(a), views)) < 0.7
+    same, total = _vote_sums(hist, a.astype(np.int64), b.astype(np.int64), vote_views, first_label, n)
+    ref_same, ref_total = _vote_sums_numpy(hist, a, b, vote_views, first_label, n)
+    np.testing.assert_array_equal(same.astype(np.float64), ref_same)
+    np.testing.assert_array_equal(total.astype(np.float64), ref_total)
+    assert same.max() > 2 ** 32  # past int32: the int64 products and sums are needed
 
 
 @pytest.mark.parametrize("seed", [0, 1])

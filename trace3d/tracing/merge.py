@@ -256,18 +256,52 @@ def vote(hist: np.ndarray, pairs: np.ndarray, counts: np.ndarray | None = None,
     sims, omega = np.zeros(k), np.zeros(k, np.int64)
     supported = (counts[pairs[:, 0]] > rule.min_gaussians) & (counts[pairs[:, 1]] > rule.min_gaussians)
     step = max(1, VOTE_BLOCK // max(1, h.shape[1] * h.shape[2]))
+    counts_h = np.ascontiguousarray(hist, np.int32)
     for lo in range(0, k, step):
         a, b = pairs[lo:lo + step, 0], pairs[lo:lo + step, 1]
         views = (share[a] > rule.min_view_share) & (share[b] > rule.min_view_share)  # [k, L]
         ok = supported[lo:lo + step] & (views.sum(axis=1) >= rule.min_views)
         supported[lo:lo + step] = ok
-        ha, hb = h[a].astype(np.float64), h[b].astype(np.float64)
-        same = ((ha * hb).sum(axis=2) * views).sum(axis=1)
-        total = (n[a].astype(np.float64) * n[b] * views).sum(axis=1)
+        same, total = _vote_sums(counts_h, np.ascontiguousarray(a), np.ascontiguousarray(b), views,
+                                 rule.first_label, n)
+        same, total = same.astype(np.float64), total.astype(np.float64)
         total = np.where(ok, total, 0.0)
         sims[lo:lo + step] = np.where(total > 0, same / np.maximum(total, 1), 0.0)
         omega[lo:lo + step] = total.astype(np.int64)
     return sims, omega, supported
+
+
+@njit(cache=True)
+def _vote_sums(hist, a, b, views, first_label, n):
+    """Per pair k: same[k] = sum over voting views v (``views`` [K, L]) and labels l >= ``first_label`` of
+    hist[a_k, v, l] hist[b_k, v, l], and total[k] = sum over those views of n[a_k, v] n[b_k, v], as int64
+    (``hist`` [A, L, T] int32 counts, ``n`` [A, L] int64). Integers: :func:`vote`'s float64 sums of the same
+    integer terms (each below 2^53) are exact, so their floats are these; the twin :func:`_vote_sums_numpy`."""
+    k = a.shape[0]
+    same = np.zeros(k, np.int64)
+    total = np.zeros(k, np.int64)
+    for p in range(k):
+        pa, pb = a[p], b[p]
+        s = 0
+        t = 0
+        for v in range(hist.shape[1]):
+            if not views[p, v]:
+                continue
+            for lab in range(first_label, hist.shape[2]):
+                s += np.int64(hist[pa, v, lab]) * np.int64(hist[pb, v, lab])
+            t += n[pa, v] * n[pb, v]
+        same[p] = s
+        total[p] = t
+    return same, total
+
+
+def _vote_sums_numpy(hist, a, b, views, first_label, n) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_vote_sums` in float64 numpy, as :func:`vote` computed it before the kernel (the twin)."""
+    h = hist[:, :, first_label:]
+    ha, hb = h[a].astype(np.float64), h[b].astype(np.float64)
+    same = ((ha * hb).sum(axis=2) * views).sum(axis=1)
+    total = (n[a].astype(np.float64) * n[b] * views).sum(axis=1)
+    return same, total
 
 
 def pair_similarity(hist: np.ndarray, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
