@@ -351,60 +351,28 @@ def neighbour_lists(edges: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarr
     return indptr, np.ascontiguousarray(others[order])
 
 
-@njit(cache=True, inline="always")
-def _heap_push(keys, items, size, key, item):
-    """Push (key, item) onto the binary min-heap ``keys``/``items`` of ``size`` entries; returns the new size."""
-    j = size
-    while j > 0:
-        up = (j - 1) >> 1
-        if keys[up] <= key:
-            break
-        keys[j] = keys[up]
-        items[j] = items[up]
-        j = up
-    keys[j] = key
-    items[j] = item
-    return size + 1
-
-
 @njit(cache=True)
-def _bottleneck_reach(indptr, neighbours, d, seeds, limit):
-    """:func:`bottleneck_distances`' kernel: a Dijkstra over the least largest ``d`` of a path. A point
-    reached from a point at level ``key`` (the current least) gets ``key`` when its own d is at most
-    ``key`` (it joins the level's flood, a stack) and its own d otherwise (its final value too: every path
-    to it holds it), pushed once onto a min-heap of the levels to come. Points with d > limit are never
-    entered."""
+def _bottleneck_reach(indptr, neighbours, d, order, seeds, limit):
+    """:func:`bottleneck_distances`' kernel: a Dijkstra over the least largest ``d`` of a path, whose queue
+    is ``d``'s ascending ``order``. A point reached from a point at level ``key`` gets ``key`` when its own
+    d is at most ``key`` (it joins the level's flood, a stack) and its own d otherwise (its final value
+    too: every path to it holds it); such points, and the seeds, are the levels to come, each flooded from
+    when the walk along ``order`` comes to it (it comes after the level that reached it: its d is larger).
+    Points with d > limit are never entered."""
     count = d.shape[0]
     reach = np.full(count, np.inf)
-    keys = np.empty(count, np.float64)
-    items = np.empty(count, np.int64)
+    level = np.zeros(count, np.bool_)  # reached at its own d: a level to flood from
     stack = np.empty(count, np.int64)
-    size = 0
     for i in range(seeds.shape[0]):
         s = seeds[i]
         if d[s] <= limit and reach[s] == np.inf:
             reach[s] = d[s]
-            size = _heap_push(keys, items, size, d[s], s)
-    while size > 0:
-        key = keys[0]
-        v = items[0]
-        size -= 1
-        last_key = keys[size]
-        last = items[size]
-        j = 0
-        while True:  # sift the last entry down from the top
-            c = 2 * j + 1
-            if c >= size:
-                break
-            if c + 1 < size and keys[c + 1] < keys[c]:
-                c += 1
-            if keys[c] >= last_key:
-                break
-            keys[j] = keys[c]
-            items[j] = items[c]
-            j = c
-        keys[j] = last_key
-        items[j] = last
+            level[s] = True
+    for j in range(order.shape[0]):
+        v = order[j]
+        if not level[v]:
+            continue
+        key = d[v]
         top = 1
         stack[0] = v
         while top > 0:
@@ -420,7 +388,7 @@ def _bottleneck_reach(indptr, neighbours, d, seeds, limit):
                     top += 1
                 else:
                     reach[u] = d[u]
-                    size = _heap_push(keys, items, size, d[u], u)
+                    level[u] = True
     return reach
 
 
@@ -429,11 +397,13 @@ def bottleneck_distances(d: np.ndarray, indptr: np.ndarray, neighbours: np.ndarr
     """[S] float64: per point the least, over the paths from a seed to it along the graph
     (:func:`neighbour_lists`), of the path's largest ``d`` [S] (inf: no path whose points all have
     d <= ``limit``). Every value is one of ``d``'s, so any exact method gives the same bits: this is
-    :func:`trace3d.extract.click_distances` (a minimum spanning tree) by a flood-and-heap kernel, its twin
-    ``click_distances_reference`` a plain Dijkstra."""
+    :func:`trace3d.extract.click_distances` (a minimum spanning tree) by a flood kernel walking ``d`` in
+    ascending order, its twin ``click_distances_reference`` a plain Dijkstra."""
     seeds = np.unique(np.asarray(seeds, np.int64))
-    return _bottleneck_reach(np.ascontiguousarray(indptr, np.int64), np.ascontiguousarray(neighbours, np.int64),
-                             np.ascontiguousarray(d, np.float64), seeds, float(limit))
+    d = np.ascontiguousarray(d, np.float64)
+    order = np.argsort(d).astype(np.int64, copy=False)  # ties in any order: the values do not depend on it
+    return _bottleneck_reach(np.ascontiguousarray(indptr, np.int64), np.ascontiguousarray(neighbours, np.int64), d,
+                             order, seeds, float(limit))
 
 
 @njit(cache=True)

@@ -166,9 +166,9 @@ def test_click_distances_match_their_twin_and_every_threshold(seed):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_bottleneck_kernel_matches_the_tree_and_the_dijkstra(seed):
-    """:func:`bottleneck_distances` (the click's flood-and-heap kernel over neighbour lists) gives the bits
-    of :func:`click_distances` (a minimum spanning tree) and of its Dijkstra twin: with and without a
-    limit, repeated seeds, seeds beyond the limit, points no path reaches, ties in d, no seed."""
+    """:func:`bottleneck_distances` (the click's flood kernel over neighbour lists, walking d in ascending
+    order) gives the bits of :func:`click_distances` (a minimum spanning tree) and of its Dijkstra twin: with
+    and without a limit, repeated seeds, seeds beyond the limit, points no path reaches, ties in d, no seed."""
     rng = np.random.default_rng(seed)
     n = 700
     means = np.r_[rng.random((n, 3)), [[50.0, 50.0, 50.0]]]  # the last point far from all
