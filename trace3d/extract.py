@@ -236,28 +236,32 @@ def grow_from_click(feature_map: np.ndarray, x: int, y: int, params: ExtractPara
 class ClickScene:
     """What every click on one lifted scene shares: the seen Gaussians' kNN graph, the feature
     threshold (given, or ``threshold_scale`` x :func:`~trace3d.segment.feature_threshold`) and, for
-    ``selection: segment``, the scene's segments (made on first use).
+    ``selection: segment``, the scene's segments (made on first use); the graph's neighbour lists and every
+    unseen Gaussian's nearest seen one (:class:`~trace3d.segment.SeenGraph`, made once, not per click).
 
     Args:
         means: [N, 3] Gaussian centres; features: [N, D] lifted features; weights: [N] summed training
             blending weights (0 = never seen in training).
+        shared: a :class:`~trace3d.segment.SeenGraph` of these means, features and weights with
+            ``params.neighbours``, if made already (the evaluation's segment score uses the same one).
     """
 
-    def __init__(self, means: np.ndarray, features: np.ndarray, weights: np.ndarray, params: ExtractParams):
-        from .segment import feature_threshold, gaussian_graph
+    def __init__(self, means: np.ndarray, features: np.ndarray, weights: np.ndarray, params: ExtractParams,
+                 shared=None):
+        from .segment import SeenGraph
 
-        self.means = np.asarray(means, np.float64)
-        self.features = np.asarray(features, np.float64)
-        self.weights = np.asarray(weights, np.float64)
+        self.shared = shared if shared is not None else SeenGraph(means, features, weights, params.neighbours)
+        self.means = self.shared.means
+        self.features = self.shared.features
+        self.weights = self.shared.weights
         self.params = params
-        self.seen = np.flatnonzero(self.weights > 0)
-        self.graph = gaussian_graph(self.means, self.seen, params.neighbours)
+        self.seen = self.shared.seen
+        self.graph = self.shared.graph
         if params.threshold is not None:
             self.data_threshold = None
             self.threshold = float(params.threshold)
         else:
-            self.data_threshold = feature_threshold(self.features[self.seen], self.weights[self.seen], self.graph.edges,
-                                           params.pairs, params.seed)
+            self.data_threshold = self.shared.threshold(params.pairs, params.seed)
             self.threshold = params.threshold_scale * self.data_threshold
         self.last_threshold = self.threshold  # the threshold of the latest click (``stable``: its own)
         self._segments = None
@@ -269,18 +273,15 @@ class ClickScene:
 
         if self._segments is None:
             sp = SegmentParams(neighbours=self.params.neighbours, pairs=self.params.pairs, seed=self.params.seed)
-            self._segments = segment_gaussians(self.means, self.features, self.weights, sp, self.graph)
+            self._segments = segment_gaussians(self.means, self.features, self.weights, sp, self.shared)
         return self._segments
 
     def _unseen_follow(self, keep_seen: np.ndarray) -> np.ndarray:
         """[N] bool from the seen Gaussians' choice [S]: an unseen Gaussian follows its nearest seen one."""
-        from scipy.spatial import cKDTree
-
         keep = np.zeros(len(self.means), bool)
         keep[self.seen] = keep_seen
-        unseen = np.flatnonzero(self.weights <= 0)
-        if unseen.size and self.seen.size:
-            _, nearest = cKDTree(self.means[self.seen]).query(self.means[unseen], k=1)
+        unseen, nearest = self.shared.nearest_seen()
+        if unseen.size:
             keep[unseen] = keep_seen[nearest]
         return keep
 
@@ -315,13 +316,24 @@ class ClickScene:
         local = np.searchsorted(self.seen, seeds[inside])
         if self.params.threshold is not None or self.params.threshold_rule == "data":
             self.last_threshold = self.threshold
-            return self._unseen_follow(select_connected(self.features[self.seen], query, self.graph.edges, local,
+            return self._unseen_follow(select_connected(self.shared.seen_features, query, self.graph.edges, local,
                                                         self.threshold))
         # the largest threshold tried: a point farther from the click is never selected
         limit = self.threshold * self.params.stable_max_scale
-        reach = click_distances(self.features[self.seen], query, self.graph.edges, local, limit)
-        self.last_threshold = stable_threshold(reach, self.weights[self.seen], self.threshold, self.params)
+        reach = self.click_distances(query, local, limit)
+        self.last_threshold = stable_threshold(reach, self.shared.seen_weights, self.threshold, self.params)
         return self._unseen_follow(reach <= self.last_threshold)
+
+    def click_distances(self, query: np.ndarray, seeds: np.ndarray, limit: float = np.inf) -> np.ndarray:
+        """:func:`click_distances` of the seen Gaussians (``seeds``: positions in ``seen``) over the scene's
+        graph, by :func:`~trace3d.segment.bottleneck_distances` on its neighbour lists (made once): the same
+        bits (tests/objects/test_segclick.py)."""
+        from .segment import bottleneck_distances
+
+        f = self.shared.seen_features
+        d = np.sqrt(((f - np.asarray(query, np.float64)[None, :]) ** 2).sum(1))
+        indptr, neighbours = self.shared.neighbour_lists()
+        return bottleneck_distances(d, indptr, neighbours, seeds, limit)
 
 
 def click_distances(features: np.ndarray, query: np.ndarray, edges: np.ndarray, seeds: np.ndarray,

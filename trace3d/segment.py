@@ -175,7 +175,8 @@ def gaussian_graph(means: np.ndarray, seen: np.ndarray, neighbours: int) -> Gaus
     return GaussianGraph(seen, edges, lengths[first])
 
 
-def feature_threshold(features: np.ndarray, weights: np.ndarray, edges: np.ndarray, pairs: int, seed: int) -> float:
+def feature_threshold(features: np.ndarray, weights: np.ndarray, edges: np.ndarray, pairs: int, seed: int,
+                      near: np.ndarray | None = None, order: np.ndarray | None = None) -> float:
     """The feature distance that tells "the same object" from "another object" in a lifted scene, from
     the data alone: the equal-error point between two samples of distances,
 
@@ -190,19 +191,24 @@ def feature_threshold(features: np.ndarray, weights: np.ndarray, edges: np.ndarr
     together and pushes other instances' apart. The random pairs that fall on one object are taken out
     first: their share is estimated as twice the share of random pairs closer than the neighbours'
     median distance.
-    Measured on development lifts (docs/evaluation.md) it lies at 4-12."""
+    Measured on development lifts (docs/evaluation.md) it lies at 4-12.
+
+    ``near`` [E] and ``order`` [E]: the edges' feature distances (:func:`edge_distances`) and their stable
+    ascending order, if computed already (:class:`SeenGraph`); the same values either way."""
     features = np.asarray(features, np.float64)
     weights = np.asarray(weights, np.float64)
     if len(features) < 2 or not len(edges):
         return 1.0
-    near = np.sqrt(((features[edges[:, 0]] - features[edges[:, 1]]) ** 2).sum(1))
+    if near is None:
+        near = edge_distances(features, edges)
     near_w = np.minimum(weights[edges[:, 0]], weights[edges[:, 1]])
     rng = np.random.default_rng(seed)
     p = weights / weights.sum()
     a = rng.choice(len(features), size=pairs, p=p)
     b = rng.choice(len(features), size=pairs, p=p)
     far = np.sort(np.sqrt(((features[a] - features[b]) ** 2).sum(1)))
-    order = np.argsort(near, kind="stable")
+    if order is None:
+        order = np.argsort(near, kind="stable")
     near, cum = near[order], np.cumsum(near_w[order])
     median = near[min(np.searchsorted(cum, 0.5 * cum[-1]), near.size - 1)]
     # random pairs on one object (many in a scene of few objects: a wall and a plant) are as close as
@@ -224,6 +230,180 @@ def feature_threshold(features: np.ndarray, weights: np.ndarray, edges: np.ndarr
         last += 1
     upper = grid[last + 1] if last + 1 < grid.size else grid[last]
     return float(0.5 * (grid[first] + upper))
+
+
+def edge_distances(features: np.ndarray, edges: np.ndarray, block: int = 1 << 14) -> np.ndarray:
+    """[E] float64: the feature distance between the two ends of every edge (``features`` [S, D] float64),
+    ``block`` edges at a time (the bits of ``sqrt(((f[a] - f[b]) ** 2).sum(1))`` over all edges at once,
+    row by row the same operations, without its [E, D] temporaries: on a default room they cost more in
+    fresh memory than in arithmetic)."""
+    out = np.empty(len(edges))
+    for lo in range(0, len(edges), block):
+        diff = features[edges[lo:lo + block, 0]]
+        diff -= features[edges[lo:lo + block, 1]]
+        diff *= diff
+        np.sqrt(diff.sum(1), out=out[lo:lo + block])
+    return out
+
+
+def _lexsorted(edges: np.ndarray) -> bool:
+    """Whether the edges [E, 2] are in strictly ascending (first end, second end) order (as
+    :func:`gaussian_graph` lists them)."""
+    if len(edges) < 2:
+        return True
+    a, b = edges[:-1], edges[1:]
+    return bool(((a[:, 0] < b[:, 0]) | ((a[:, 0] == b[:, 0]) & (a[:, 1] < b[:, 1]))).all())
+
+
+class SeenGraph:
+    """What the segment and click steps derive from one lifted scene's seen Gaussians, each computed once
+    on first use and then shared: the kNN graph (:func:`gaussian_graph`), the seen Gaussians' features
+    and weights, the edges' feature distances and their ascending order, the data's feature threshold
+    per (pairs, seed) (:func:`feature_threshold`), every unseen Gaussian's nearest seen one, and the graph
+    as neighbour lists (for :func:`bottleneck_distances`). The evaluation's segment and click scores use
+    one; a caller without one gets one of its own (the same values: the same functions on the same inputs).
+
+    Args:
+        means: [N, 3] centres; features: [N, D] lifted features; weights: [N] summed training blending
+            weights (> 0: seen); neighbours: k of the graph; graph: the seen Gaussians' graph if made already.
+    """
+
+    def __init__(self, means: np.ndarray, features: np.ndarray, weights: np.ndarray, neighbours: int,
+                 graph: GaussianGraph | None = None):
+        self.means = np.asarray(means, np.float64)
+        self.features = np.asarray(features, np.float64)
+        self.weights = np.asarray(weights, np.float64)
+        self.seen = np.flatnonzero(self.weights > 0)
+        self.neighbours = int(neighbours)
+        self.graph = graph if graph is not None else gaussian_graph(self.means, self.seen, self.neighbours)
+        self.seen_features = self.features[self.seen]
+        self.seen_weights = self.weights[self.seen]
+        self._distances = None
+        self._order = None
+        self._thresholds: dict = {}
+        self._nearest = None
+        self._lists = None
+
+    def distances(self) -> np.ndarray:
+        """[E] the edges' feature distances (:func:`edge_distances`)."""
+        if self._distances is None:
+            edges = self.graph.edges
+            self._distances = edge_distances(self.seen_features, edges) if len(edges) else np.zeros(0)
+        return self._distances
+
+    def order(self) -> np.ndarray:
+        """[E] the edges by ascending feature distance, ties in edge order (a stable sort)."""
+        if self._order is None:
+            self._order = np.argsort(self.distances(), kind="stable")
+        return self._order
+
+    def grow_order(self) -> np.ndarray:
+        """The edges by ascending feature distance, ties by their (first, second) ends: :meth:`order` when
+        the edges are listed in that order already (:func:`gaussian_graph`'s), else a lexsort."""
+        edges = self.graph.edges
+        if _lexsorted(edges):
+            return self.order()
+        return np.lexsort((edges[:, 1], edges[:, 0], self.distances()))
+
+    def threshold(self, pairs: int, seed: int) -> float:
+        """:func:`feature_threshold` of the seen Gaussians over the graph's edges (made once per pairs, seed)."""
+        key = (int(pairs), int(seed))
+        if key not in self._thresholds:
+            edges = self.graph.edges
+            ready = len(self.seen) >= 2 and len(edges)
+            self._thresholds[key] = feature_threshold(self.seen_features, self.seen_weights, edges, pairs, seed,
+                                                      self.distances() if ready else None,
+                                                      self.order() if ready else None)
+        return self._thresholds[key]
+
+    def nearest_seen(self) -> tuple[np.ndarray, np.ndarray]:
+        """The unseen Gaussians [U] (indices into the model) and each one's nearest seen Gaussian [U]
+        (a position in ``seen``; a k-d tree of the seen centres, ties by index); empty when none is unseen
+        or none is seen."""
+        if self._nearest is None:
+            from scipy.spatial import cKDTree
+
+            unseen = np.flatnonzero(self.weights <= 0)
+            if unseen.size and self.seen.size:
+                _, nearest = cKDTree(self.means[self.seen]).query(self.means[unseen], k=1)
+                self._nearest = (unseen, np.asarray(nearest, np.int64))
+            else:
+                self._nearest = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+        return self._nearest
+
+    def neighbour_lists(self) -> tuple[np.ndarray, np.ndarray]:
+        """The graph as CSR neighbour lists over the seen Gaussians: indptr [S + 1], neighbours [2E] (each
+        edge from both ends)."""
+        if self._lists is None:
+            self._lists = neighbour_lists(self.graph.edges, len(self.seen))
+        return self._lists
+
+
+def neighbour_lists(edges: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """CSR neighbour lists of the undirected ``edges`` [E, 2] over ``count`` points: indptr [count + 1] int64
+    and neighbours [2E] int64 (each point's in edge order)."""
+    edges = np.asarray(edges, np.int64).reshape(-1, 2)
+    ends = np.concatenate([edges[:, 0], edges[:, 1]])
+    others = np.concatenate([edges[:, 1], edges[:, 0]])
+    order = np.argsort(ends, kind="stable")
+    indptr = np.zeros(count + 1, np.int64)
+    np.cumsum(np.bincount(ends, minlength=count), out=indptr[1:])
+    return indptr, np.ascontiguousarray(others[order])
+
+
+@njit(cache=True)
+def _bottleneck_reach(indptr, neighbours, d, order, seeds, limit):
+    """:func:`bottleneck_distances`' kernel: a Dijkstra over the least largest ``d`` of a path, whose queue
+    is ``d``'s ascending ``order``. A point reached from a point at level ``key`` gets ``key`` when its own
+    d is at most ``key`` (it joins the level's flood, a stack) and its own d otherwise (its final value
+    too: every path to it holds it); such points, and the seeds, are the levels to come, each flooded from
+    when the walk along ``order`` comes to it (it comes after the level that reached it: its d is larger).
+    Points with d > limit are never entered."""
+    count = d.shape[0]
+    reach = np.full(count, np.inf)
+    level = np.zeros(count, np.bool_)  # reached at its own d: a level to flood from
+    stack = np.empty(count, np.int64)
+    for i in range(seeds.shape[0]):
+        s = seeds[i]
+        if d[s] <= limit and reach[s] == np.inf:
+            reach[s] = d[s]
+            level[s] = True
+    for j in range(order.shape[0]):
+        v = order[j]
+        if not level[v]:
+            continue
+        key = d[v]
+        top = 1
+        stack[0] = v
+        while top > 0:
+            top -= 1
+            x = stack[top]
+            for k in range(indptr[x], indptr[x + 1]):
+                u = neighbours[k]
+                if reach[u] != np.inf or d[u] > limit:
+                    continue
+                if d[u] <= key:
+                    reach[u] = key
+                    stack[top] = u
+                    top += 1
+                else:
+                    reach[u] = d[u]
+                    level[u] = True
+    return reach
+
+
+def bottleneck_distances(d: np.ndarray, indptr: np.ndarray, neighbours: np.ndarray, seeds: np.ndarray,
+                         limit: float = np.inf) -> np.ndarray:
+    """[S] float64: per point the least, over the paths from a seed to it along the graph
+    (:func:`neighbour_lists`), of the path's largest ``d`` [S] (inf: no path whose points all have
+    d <= ``limit``). Every value is one of ``d``'s, so any exact method gives the same bits: this is
+    :func:`trace3d.extract.click_distances` (a minimum spanning tree) by a flood kernel walking ``d`` in
+    ascending order, its twin ``click_distances_reference`` a plain Dijkstra."""
+    seeds = np.unique(np.asarray(seeds, np.int64))
+    d = np.ascontiguousarray(d, np.float64)
+    order = np.argsort(d).astype(np.int64, copy=False)  # ties in any order: the values do not depend on it
+    return _bottleneck_reach(np.ascontiguousarray(indptr, np.int64), np.ascontiguousarray(neighbours, np.int64), d,
+                             order, seeds, float(limit))
 
 
 @njit(cache=True)
@@ -263,6 +443,17 @@ def _merge_edges(edges, distances, sums, mass, threshold, parent):
         mass[a] += mass[b]
         for c in range(dim):
             sums[a, c] += sums[b, c]
+
+
+def _roots(parent: np.ndarray) -> np.ndarray:
+    """[S] every point's root in the union-find forest ``parent`` [S] (by pointer jumping: each round
+    halves the paths; ``parent`` is left as it is). Twin: :func:`_find` per point."""
+    roots = np.asarray(parent, np.int64).copy()
+    while True:
+        up = roots[roots]
+        if np.array_equal(up, roots):
+            return roots
+        roots = up
 
 
 def _merge_edges_reference(edges, distances, sums, mass, threshold, parent) -> None:
@@ -332,43 +523,42 @@ def _extents(points: np.ndarray, weights: np.ndarray) -> np.ndarray:
 
 
 def segment_gaussians(means: np.ndarray, features: np.ndarray, weights: np.ndarray, params: "SegmentParams",
-                      graph: GaussianGraph | None = None) -> SceneSegments:
+                      graph: GaussianGraph | SeenGraph | None = None) -> SceneSegments:
     """Objects of a lifted scene from its features and 3D adjacency (module docstring).
 
     Args:
         means: [N, 3] Gaussian centres; features: [N, D] lifted features; weights: [N] summed training
             blending weights (0 = never seen: such Gaussians take their nearest seen neighbour's segment).
-        graph: the seen Gaussians' :func:`gaussian_graph` if made already.
+        graph: the seen Gaussians' :func:`gaussian_graph` if made already, or a :class:`SeenGraph` of these
+            means, features and weights (its graph, edge distances, threshold and nearest seen Gaussians
+            are then shared with its other users).
     """
-    from scipy.spatial import cKDTree
-
-    means = np.asarray(means, np.float64)
-    features = np.asarray(features, np.float64)
-    weights = np.asarray(weights, np.float64)
+    shared = graph if isinstance(graph, SeenGraph) else SeenGraph(means, features, weights, params.neighbours, graph)
+    means = shared.means
+    weights = shared.weights
     n = len(means)
-    seen = np.flatnonzero(weights > 0)
-    if graph is None:
-        graph = gaussian_graph(means, seen, params.neighbours)
+    seen = shared.seen
+    graph = shared.graph
     count = seen.size
-    f = features[seen]
-    w = weights[seen]
+    f = shared.seen_features
+    w = shared.seen_weights
     edges = graph.edges
-    fdist = np.sqrt(((f[edges[:, 0]] - f[edges[:, 1]]) ** 2).sum(1)) if len(edges) else np.zeros(0)
+    fdist = shared.distances()
     if params.feature_threshold is not None:
         threshold, source = float(params.feature_threshold), "params"
     else:
-        base = feature_threshold(f, w, edges, params.pairs, params.seed)
+        base = shared.threshold(params.pairs, params.seed)
         threshold = params.threshold_scale * base
         source = f"{params.threshold_scale:g} x the equal-error distance {base:.4g}"
     if params.method == "graph":
         # 1. grow segments along the kNN edges, in order of feature distance (ties by the edge's ends)
-        grow = np.lexsort((edges[:, 1], edges[:, 0], fdist))
+        grow = shared.grow_order()
         parent = np.arange(count, dtype=np.int64)
         sums = f * w[:, None]
         mass = w.copy()
         _merge_edges(np.ascontiguousarray(edges[grow]), np.ascontiguousarray(fdist[grow]), sums, mass, threshold,
                      parent)
-        roots = np.array([_find(parent, v) for v in range(count)], np.int64) if count else np.zeros(0, np.int64)
+        roots = _roots(parent)
     else:
         # 1. HDBSCAN of the features (the PQ^scene clustering), each cluster split into its pieces
         # connected in 3D (kNN edges inside the cluster)
@@ -377,7 +567,7 @@ def segment_gaussians(means: np.ndarray, features: np.ndarray, weights: np.ndarr
 
         from .evaluation.panoptic import cluster_features
 
-        clusters = cluster_features(features, weights, params.samples, params.min_share, params.seed)
+        clusters = cluster_features(shared.features, weights, params.samples, params.min_share, params.seed)
         cl = clusters.instance[seen]
         same = cl[edges[:, 0]] == cl[edges[:, 1]]
         linked = coo_matrix((np.ones(int(same.sum())), (edges[same, 0], edges[same, 1])), shape=(count, count))
@@ -459,9 +649,8 @@ def segment_gaussians(means: np.ndarray, features: np.ndarray, weights: np.ndarr
     seen_instance = number[label] if count else np.zeros(0, np.int64)
     instance = np.zeros(n, np.int64)
     instance[seen] = seen_instance
-    unseen = np.flatnonzero(weights <= 0)
+    unseen, nearest = shared.nearest_seen()
     if unseen.size and count:
-        _, nearest = cKDTree(means[seen]).query(means[unseen], k=1)
         instance[unseen] = seen_instance[nearest]
     kept = np.asarray(ranked, np.int64)
     ext = extents[kept] if kept.size else np.zeros((0, 3))

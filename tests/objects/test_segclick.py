@@ -10,8 +10,9 @@ import pytest
 
 from trace3d.extract import (ClickScene, ExtractParams, click_distances, click_distances_reference, select_connected,
                              select_connected_reference, stable_threshold)
-from trace3d.segment import (SegmentParams, _find, _merge_edges, _merge_edges_reference, feature_threshold,
-                             gaussian_graph, segment_gaussians)
+from trace3d.segment import (SeenGraph, SegmentParams, _find, _merge_edges, _merge_edges_reference, _roots,
+                             bottleneck_distances, edge_distances, feature_threshold, gaussian_graph,
+                             neighbour_lists, segment_gaussians)
 
 
 def _box(rng, centre, size, count):
@@ -161,6 +162,90 @@ def test_click_distances_match_their_twin_and_every_threshold(seed):
     far = click_distances(np.r_[feats, feats[:1]], feats[seeds[0]], g2_edges, seeds)
     assert np.isinf(far[n]) and np.isfinite(far[:n]).any()
     assert np.isinf(click_distances(feats, feats[0], graph.edges, np.zeros(0, np.int64))).all()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_bottleneck_kernel_matches_the_tree_and_the_dijkstra(seed):
+    """:func:`bottleneck_distances` (the click's flood kernel over neighbour lists, walking d in ascending
+    order) gives the bits of :func:`click_distances` (a minimum spanning tree) and of its Dijkstra twin: with
+    and without a limit, repeated seeds, seeds beyond the limit, points no path reaches, ties in d, no seed."""
+    rng = np.random.default_rng(seed)
+    n = 700
+    means = np.r_[rng.random((n, 3)), [[50.0, 50.0, 50.0]]]  # the last point far from all
+    feats = rng.normal(0, 1, (n + 1, 4))
+    feats[10:40] = feats[9]  # ties in d
+    graph = gaussian_graph(means, np.arange(n + 1), 5)
+    edges = graph.edges[(graph.edges != n).all(1)]  # the far point linked to none
+    indptr, nbrs = neighbour_lists(edges, n + 1)
+    seeds = np.r_[rng.choice(n, 5, replace=False), 9]
+    seeds[1] = seeds[0]
+    for query in (feats[seeds[0]], feats[9], rng.normal(0, 1, 4)):
+        d = np.sqrt(((feats - query[None, :]) ** 2).sum(1))
+        for limit in (np.inf, 2.5, 1.0, 0.0):
+            fast = bottleneck_distances(d, indptr, nbrs, seeds, limit)
+            np.testing.assert_array_equal(fast, click_distances(feats, query, edges, seeds, limit))
+            np.testing.assert_array_equal(fast, click_distances_reference(feats, query, edges, seeds, limit))
+        assert np.isinf(fast[n])
+    assert np.isinf(bottleneck_distances(d, indptr, nbrs, np.zeros(0, np.int64))).all()
+    # the lists hold every edge from both ends
+    got = {(a, int(b)) for a in range(n + 1) for b in nbrs[indptr[a]:indptr[a + 1]]}
+    assert got == {(int(a), int(b)) for a, b in edges} | {(int(b), int(a)) for a, b in edges}
+
+
+def test_roots_by_pointer_jumping_are_finds():
+    rng = np.random.default_rng(4)
+    n = 500
+    parent = np.arange(n, dtype=np.int64)
+    for a, b in rng.integers(0, n, (300, 2)):  # a forest with long chains
+        ra, rb = _find(parent, a), _find(parent, b)
+        if ra != rb:
+            parent[rb] = ra
+    parent[:50] = np.arange(50)  # more roots (a chain through them ends there now)
+    before = parent.copy()
+    assert (_roots(parent) != parent).any()  # paths longer than one step
+    np.testing.assert_array_equal(_roots(parent), [_find(before.copy(), v) for v in range(n)])
+    np.testing.assert_array_equal(parent, before)  # left as it was
+    assert _roots(np.zeros(0, np.int64)).size == 0
+
+
+def test_seen_graph_shares_what_each_user_would_compute():
+    """One :class:`SeenGraph` for the segment and click steps gives the bits each computes on its own: the
+    edges' distances and order, the threshold (with precomputed distances and order, and without), the
+    segments, every click's selection; edges not in the graph's order take the lexsort."""
+    means, features, weights, truth = toy_room()
+    weights = weights.copy()
+    weights[::97] = 0.0  # unseen Gaussians follow their nearest seen one
+    shared = SeenGraph(means, features, weights, 12)
+    f, w, edges = shared.seen_features, shared.seen_weights, shared.graph.edges
+    plain = np.sqrt(((f[edges[:, 0]] - f[edges[:, 1]]) ** 2).sum(1))
+    np.testing.assert_array_equal(shared.distances(), plain)
+    np.testing.assert_array_equal(edge_distances(f, edges, block=7), plain)  # blocks and a last partial one
+    np.testing.assert_array_equal(shared.grow_order(), np.lexsort((edges[:, 1], edges[:, 0], shared.distances())))
+    assert shared.threshold(5000, 3) == feature_threshold(f, w, edges, 5000, 3)
+    swapped = SeenGraph(means, features, weights, 12, dataclasses.replace(shared.graph, edges=edges[::-1].copy()))
+    np.testing.assert_array_equal(swapped.grow_order(),
+                                  np.lexsort((edges[::-1, 1], edges[::-1, 0], edge_distances(f, edges[::-1]))))
+    for params in (SegmentParams(), SegmentParams(method="hdbscan_graph", samples=2000, min_share=0.005)):
+        a = segment_gaussians(means, features, weights, params, shared)
+        b = segment_gaussians(means, features, weights, params)
+        for key in ("instance", "stuff", "gaussians", "weight", "extents"):
+            np.testing.assert_array_equal(getattr(a, key), getattr(b, key))
+        assert (a.threshold, a.threshold_source, a.stats) == (b.threshold, b.threshold_source, b.stats)
+    params = ExtractParams()
+    with_shared = ClickScene(means, features, weights, params, shared)
+    own = ClickScene(means, features, weights, params)
+    assert with_shared.threshold == own.threshold
+    rng = np.random.default_rng(0)
+    for _ in range(6):
+        seeds = rng.choice(len(means), 8, replace=False)
+        sw = rng.random(8)
+        np.testing.assert_array_equal(with_shared.select(None, seeds, sw), own.select(None, seeds, sw))
+        assert with_shared.last_threshold == own.last_threshold
+        # the scene's click distances (the kernel) are click_distances' (the tree)
+        local = np.searchsorted(own.seen, seeds[np.isin(seeds, own.seen)])
+        q = own.features[seeds[0]]
+        np.testing.assert_array_equal(own.click_distances(q, local, 3 * own.threshold),
+                                      click_distances(f, q, edges, local, 3 * own.threshold))
 
 
 def _bench_scene(seed=0):

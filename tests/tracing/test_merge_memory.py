@@ -12,7 +12,9 @@ import trace3d.tracing.merge as merge
 from trace3d.errors import SceneFormatError
 from trace3d.masks.patches import PatchHierarchy
 from trace3d.tracing.git import GITStats, GITVisible
-from trace3d.tracing.merge import MergeParams, associate, merge_all, visible_lists
+from trace3d.tracing.merge import (MergeParams, ViewMerge, associate, label_counts, merge_all, merged_label_rows,
+                                   merged_lists, view_links, view_links_dense, visible_lists)
+from trace3d.tracing.merge import _vote_sums, _vote_sums_numpy
 
 pytestmark = pytest.mark.usefixtures("single_numba_thread")
 
@@ -51,6 +53,71 @@ def test_visible_lists_are_the_visible_entries_row_major(monkeypatch, top, block
     np.testing.assert_array_equal(values, labels[seen])
     assert indices.dtype == np.int16
     assert values.dtype == (np.int16 if top <= 32767 else np.int32)
+
+
+@pytest.mark.parametrize("block_entries", [1, 7, 1 << 21])
+def test_merged_lists_and_label_counts_are_read_from_the_label_lists(monkeypatch, block_entries):
+    """The association's lists read from the labels' lists (:func:`merged_lists`) are the lists of
+    :func:`merged_label_rows` (the twin: a pass over the [N, L] labels), also where a label has no entry in
+    its view's lut (dropped) or every lut is short; the views' label counts are each view's bincount."""
+    monkeypatch.setattr(merge, "ROW_BLOCK_ENTRIES", block_entries)
+    stats = random_table(6, 120, 5, 6, 0.5)
+    visible = stats.visible(0.0)
+    labels = visible_lists(lambda lo, hi: stats.label[lo:hi], visible)
+    rng = np.random.default_rng(0)
+    for sizes in ([7, 7, 7, 7, 7], [7, 4, 7, 1, 6]):  # [P + 1] luts; shorter ones drop the labels beyond them
+        merges = [ViewMerge(f"v{v}", np.r_[0, rng.integers(1, 4, size - 1)], np.zeros((0, 2), np.int64), np.zeros(0),
+                            np.zeros(0, np.int64), np.zeros(0, bool)) for v, size in enumerate(sizes)]
+        fast = merged_lists(labels, merges)
+        slow = visible_lists(lambda lo, hi, merges=merges: merged_label_rows(stats, merges, lo, hi), visible)
+        for a, b in zip(fast, slow):
+            np.testing.assert_array_equal(a, b)
+            assert a.dtype == b.dtype
+        assert len(fast[1]) < len(labels[1]) or sizes[1] == 7  # the short luts dropped entries
+    counts = label_counts(labels, 5, 9)
+    for v in range(5):
+        seen = visible[:, v] & (stats.label[:, v] >= 0)
+        np.testing.assert_array_equal(counts[v], np.bincount(stats.label[seen, v], minlength=9))
+
+
+@pytest.mark.parametrize("first_label", [0, 1])
+def test_vote_sums_kernel_gives_the_floats_of_the_numpy_sums(first_label):
+    """The vote's integer sums (kernel) as float64 are the float64 numpy sums of the twin, bit for bit, with
+    counts up to a default room's (80,000 Gaussians) and views that do not vote."""
+    rng = np.random.default_rng(first_label)
+    patches, views, labels = 9, 7, 6
+    hist = (rng.random((patches, views, labels)) < 0.4) * rng.integers(0, 80000, (patches, views, labels))
+    hist = hist.astype(np.int32)
+    n = hist[:, :, first_label:].sum(axis=2, dtype=np.int64)
+    a, b = np.triu_indices(patches, 1)
+    vote_views = rng.random((len(a), views)) < 0.7
+    same, total = _vote_sums(hist, a.astype(np.int64), b.astype(np.int64), vote_views, first_label, n)
+    ref_same, ref_total = _vote_sums_numpy(hist, a, b, vote_views, first_label, n)
+    np.testing.assert_array_equal(same.astype(np.float64), ref_same)
+    np.testing.assert_array_equal(total.astype(np.float64), ref_total)
+    assert same.max() > 2 ** 32  # past int32: the int64 products and sums are needed
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_view_links_of_the_co_visible_pairs_are_the_whole_tables(seed):
+    """The association's links from the pairs that share a Gaussian (:func:`view_links`) are the twin's
+    over the whole float table: the same strengths, bit for bit, in the same order; exact ties with the
+    share included (a count of 1 of 2), views whose later instances are fewer than the table's width."""
+    rng = np.random.default_rng(seed)
+    views, width = 6, 5
+    counts = [4, 3, 0, 4, 2, 4]  # instances per view (the table is as wide as the most)
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    for v in range(views):
+        hist = (rng.random((width, views, width)) < 0.3) * rng.integers(1, 4, (width, views, width))
+        hist[1, -1, :] = 0
+        hist[1, -1, 1] = 1  # a share of exactly 1/2 against another 1 of the same instance
+        hist[1, -1, 2] = 1
+        hist = hist.astype(np.int32)
+        for share in (0.5, 0.3):
+            fast = view_links(hist, v, share, counts, offsets)
+            assert fast == view_links_dense(hist, v, share, counts, offsets)
+            assert all(type(s) is float for s, _, _ in fast)
+        assert v == views - 1 or fast  # something links: the comparison means something
 
 
 @pytest.mark.parametrize("min_visibility", [0.0, 0.3])

@@ -434,7 +434,8 @@ def evaluate_segments(lifted, gt, frames: Sequence[str], cameras: dict, segment_
     features over the Gaussians' 3D kNN graph; stuff segments count as instances like the others, and
     on the rooms they lie on void walls and floors) over the views ``frames``; as :func:`evaluate_panoptic`
     otherwise. ``graph``: the seen Gaussians' kNN graph with ``segment_params.neighbours`` if made
-    already (the click score's)."""
+    already, or the click score's :class:`~trace3d.segment.SeenGraph` (its edge distances, threshold and
+    nearest seen Gaussians shared too)."""
     from ..segment import segment_gaussians
 
     start = time.perf_counter()

@@ -341,8 +341,10 @@ def _panoptic(lifted, lift_info: dict, gt: GroundTruth, cameras: list, by_name: 
 
 
 class _ClickScene:
-    """The click score's :class:`~trace3d.extract.ClickScene`, made on first use, and its kNN graph for the
-    segment score when both are on and their ``neighbours`` agree (the graph is then made once)."""
+    """The click score's :class:`~trace3d.extract.ClickScene`, made on first use, and its
+    :class:`~trace3d.segment.SeenGraph` for the segment score when both are on and their ``neighbours``
+    agree (the kNN graph, its edges' feature distances, the data's threshold and the unseen Gaussians'
+    nearest seen ones are then made once)."""
 
     def __init__(self, lifted, p: EvaluateParams):
         self.lifted, self.p, self.scene = lifted, p, None
@@ -360,7 +362,7 @@ class _ClickScene:
         return self.scene
 
     def graph_for(self, neighbours: int):
-        return self.get().graph if self.p.click and self.params().neighbours == neighbours else None
+        return self.get().shared if self.p.click and self.params().neighbours == neighbours else None
 
 
 def _segment(lifted, lift_info: dict, gt: GroundTruth, cameras: list, by_name: dict, p: EvaluateParams,

@@ -256,18 +256,52 @@ def vote(hist: np.ndarray, pairs: np.ndarray, counts: np.ndarray | None = None,
     sims, omega = np.zeros(k), np.zeros(k, np.int64)
     supported = (counts[pairs[:, 0]] > rule.min_gaussians) & (counts[pairs[:, 1]] > rule.min_gaussians)
     step = max(1, VOTE_BLOCK // max(1, h.shape[1] * h.shape[2]))
+    counts_h = np.ascontiguousarray(hist, np.int32)
     for lo in range(0, k, step):
         a, b = pairs[lo:lo + step, 0], pairs[lo:lo + step, 1]
         views = (share[a] > rule.min_view_share) & (share[b] > rule.min_view_share)  # [k, L]
         ok = supported[lo:lo + step] & (views.sum(axis=1) >= rule.min_views)
         supported[lo:lo + step] = ok
-        ha, hb = h[a].astype(np.float64), h[b].astype(np.float64)
-        same = ((ha * hb).sum(axis=2) * views).sum(axis=1)
-        total = (n[a].astype(np.float64) * n[b] * views).sum(axis=1)
+        same, total = _vote_sums(counts_h, np.ascontiguousarray(a), np.ascontiguousarray(b), views,
+                                 rule.first_label, n)
+        same, total = same.astype(np.float64), total.astype(np.float64)
         total = np.where(ok, total, 0.0)
         sims[lo:lo + step] = np.where(total > 0, same / np.maximum(total, 1), 0.0)
         omega[lo:lo + step] = total.astype(np.int64)
     return sims, omega, supported
+
+
+@njit(cache=True)
+def _vote_sums(hist, a, b, views, first_label, n):
+    """Per pair k: same[k] = sum over voting views v (``views`` [K, L]) and labels l >= ``first_label`` of
+    hist[a_k, v, l] hist[b_k, v, l], and total[k] = sum over those views of n[a_k, v] n[b_k, v], as int64
+    (``hist`` [A, L, T] int32 counts, ``n`` [A, L] int64). Integers: :func:`vote`'s float64 sums of the same
+    integer terms (each below 2^53) are exact, so their floats are these; the twin :func:`_vote_sums_numpy`."""
+    k = a.shape[0]
+    same = np.zeros(k, np.int64)
+    total = np.zeros(k, np.int64)
+    for p in range(k):
+        pa, pb = a[p], b[p]
+        s = 0
+        t = 0
+        for v in range(hist.shape[1]):
+            if not views[p, v]:
+                continue
+            for lab in range(first_label, hist.shape[2]):
+                s += np.int64(hist[pa, v, lab]) * np.int64(hist[pb, v, lab])
+            t += n[pa, v] * n[pb, v]
+        same[p] = s
+        total[p] = t
+    return same, total
+
+
+def _vote_sums_numpy(hist, a, b, views, first_label, n) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_vote_sums` in float64 numpy, as :func:`vote` computed it before the kernel (the twin)."""
+    h = hist[:, :, first_label:]
+    ha, hb = h[a].astype(np.float64), h[b].astype(np.float64)
+    same = ((ha * hb).sum(axis=2) * views).sum(axis=1)
+    total = (n[a].astype(np.float64) * n[b] * views).sum(axis=1)
+    return same, total
 
 
 def pair_similarity(hist: np.ndarray, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -433,6 +467,49 @@ def _histograms_of_lists(lists, views: int, num_source: int, num_labels: int):
         count = min(block, views - start)
         yield from _all_source_histograms(indptr, indices, values, views, start, count, int(num_source),
                                           int(num_labels))
+
+
+def label_counts(lists, views: int, width: int) -> np.ndarray:
+    """[views, width] int64: per view, its visible Gaussians per label, from :func:`visible_lists`' lists
+    (labels below ``width``; the counts ``merge_view`` takes of a view's column, all views in one pass)."""
+    indptr, indices, values = lists
+    counts = np.zeros(views * width, np.int64)
+    for lo in range(0, len(indices), ROW_BLOCK_ENTRIES):  # entries a block at a time: no [nnz] int64 temporary
+        key = indices[lo:lo + ROW_BLOCK_ENTRIES].astype(np.int64) * width + values[lo:lo + ROW_BLOCK_ENTRIES]
+        counts += np.bincount(key, minlength=views * width)
+    return counts.reshape(views, width)
+
+
+def merged_lists(lists, merges: Sequence["ViewMerge"]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`visible_lists` of :func:`merged_label_rows` from the labels' own lists (``visible_lists`` of
+    the labels with the same visible mask): every entry whose label has an entry in its view's lut, the
+    label replaced by its merged instance there; the same arrays without a pass over the [N, L] labels
+    (entries a block at a time). The values are int16 when every lut's largest instance fits it, else
+    int32 (the histograms do not depend on the width)."""
+    indptr, indices, values = lists
+    sizes = np.array([len(m.lut) for m in merges], np.int64)
+    offsets = np.zeros(len(merges) + 1, np.int64)
+    np.cumsum(sizes, out=offsets[1:])
+    flat = np.concatenate([np.asarray(m.lut, np.int64) for m in merges]) if merges else np.zeros(0, np.int64)
+    kind = _narrowest(max((int(m.lut.max(initial=-1)) for m in merges), default=-1))
+    out_indices = np.empty_like(indices)
+    out_values = np.empty(len(values), kind)
+    dropped, at = [], 0
+    for lo in range(0, len(indices), ROW_BLOCK_ENTRIES):
+        view = indices[lo:lo + ROW_BLOCK_ENTRIES].astype(np.int64)
+        label = values[lo:lo + ROW_BLOCK_ENTRIES].astype(np.int64)
+        keep = label < sizes[view]
+        if not keep.all():
+            dropped.append(lo + np.flatnonzero(~keep))
+        kept = int(keep.sum())
+        out_indices[at:at + kept] = indices[lo:lo + ROW_BLOCK_ENTRIES][keep]
+        out_values[at:at + kept] = flat[offsets[view[keep]] + label[keep]]
+        at += kept
+    if not dropped:
+        return indptr, out_indices, out_values
+    dropped = np.concatenate(dropped)
+    out_indptr = indptr - np.searchsorted(dropped, indptr, side="left")  # entries dropped before each row
+    return out_indptr, out_indices[:at].copy(), out_values[:at].copy()
 
 
 def all_source_histograms(labels: np.ndarray, visible: np.ndarray, num_source: int, num_labels: int):
@@ -672,7 +749,7 @@ def merge_view(stats: GITStats, view: int, num_patches: int, pairs: np.ndarray, 
                min_visibility: float, hist: np.ndarray | None = None, rule: VoteRule = VoteRule(),
                visible: np.ndarray | None = None, grouping: str = "union_find", rank: np.ndarray | None = None,
                collapsed: np.ndarray | None = None, groups: Sequence[np.ndarray] | None = None,
-               start: np.ndarray | None = None) -> ViewMerge:
+               start: np.ndarray | None = None, counts: np.ndarray | None = None) -> ViewMerge:
     """Merge the patches of view ``view`` (ids 1..num_patches; 0 is uncovered and never merged).
 
     ``hist``: the view's [A, L, T] source histograms when already computed (:func:`all_source_histograms`);
@@ -682,7 +759,8 @@ def merge_view(stats: GITStats, view: int, num_patches: int, pairs: np.ndarray, 
     ``rank`` ([P + 1], :func:`released_ids`; default: patch ids), per group of ``groups`` (default: one).
     ``collapsed``: [C, 2] pairs joined without a vote; ``start``: [P + 1] the id each patch carries
     before the vote (the released grouping relabels ids as the released code relabels pixels: a giver's
-    id becomes the receiver's, for every patch carrying it; default: its own).
+    id becomes the receiver's, for every patch carrying it; default: its own). ``counts``: the view's
+    visible Gaussians per label when already counted (:func:`label_counts`; at least ``len(hist)`` long).
     """
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
     if visible is None:
@@ -691,12 +769,18 @@ def merge_view(stats: GITStats, view: int, num_patches: int, pairs: np.ndarray, 
     num_source = max(num_patches + 1, int(stats.num_labels[view]))
     if hist is None:
         hist = source_histograms(stats.label, visible, view, num_source, num_labels)
-    source = visible[:, view] & (stats.label[:, view] >= 0)
-    counts = np.bincount(stats.label[source, view], minlength=len(hist)).astype(np.int64)
+    source = None
+    if counts is None:
+        source = visible[:, view] & (stats.label[:, view] >= 0)
+        counts = np.bincount(stats.label[source, view], minlength=len(hist)).astype(np.int64)
+    else:
+        counts = np.asarray(counts, np.int64)[:len(hist)]
     if rule.min_gaussian_views > 0:
         sims, omega, supported = vote(hist, pairs, counts, VoteRule(rule.uncovered, rule.min_gaussians,
                                                                      rule.min_view_share, rule.min_views))
         if len(pairs):
+            if source is None:
+                source = visible[:, view] & (stats.label[:, view] >= 0)
             rows_all = np.nonzero(source)[0]
             masked = stats.label[rows_all].astype(np.int32, copy=False)  # a copy (rows), masked in place
             at_view = masked[:, view].copy()
@@ -762,20 +846,65 @@ def merged_label_rows(stats, merges: Sequence[ViewMerge], lo: int, hi: int) -> n
     return out
 
 
+def view_links(hist: np.ndarray, v: int, share: float, counts: Sequence[int],
+               offsets: np.ndarray) -> list[tuple[float, int, int]]:
+    """The links of view ``v``'s instances to later views' (:func:`associate`): (strength, a, b) for every
+    (m, w, m') of the [G+1, L, G'+1] co-visibility counts ``hist`` with w > v whose strength (the least of
+    the two shares) exceeds ``share``; a, b: global positions (``offsets`` [L + 1], ``counts`` [L]
+    instances per view). Only the pairs that share a Gaussian are divided out: the totals are sums of
+    integers (exact in any order and type) and a pair sharing none has strength 0, never above
+    ``share`` > 0; the same floats as :func:`view_links_dense` (the twin, over the whole table)."""
+    later = hist[:, v + 1:, :]
+    fwd_total = later[1:].sum(axis=2, dtype=np.int64)  # [G, L']: Gaussians of (v, m) co-visible in w
+    rev_total = later.sum(axis=0, dtype=np.int64)[:, 1:]  # [L', G']: Gaussians of (w, m') co-visible in v
+    block = later[1:, :, 1:]
+    m, w, mp = np.nonzero(block)
+    both = block[m, w, mp].astype(np.float64)
+    strength = np.minimum(both / np.maximum(fwd_total[m, w], 1), both / np.maximum(rev_total[w, mp], 1))
+    keep = strength > share
+    m, w, mp, strength = m[keep], w[keep], mp[keep], strength[keep]
+    w_abs = w + v + 1
+    ok = mp < np.asarray(counts)[w_abs]
+    return [(float(s_), int(a_), int(b_))
+            for s_, a_, b_ in zip(strength[ok], offsets[v] + m[ok], offsets[w_abs[ok]] + mp[ok])]
+
+
+def view_links_dense(hist: np.ndarray, v: int, share: float, counts: Sequence[int],
+                     offsets: np.ndarray) -> list[tuple[float, int, int]]:
+    """:func:`view_links` over the whole table in float64 (the twin)."""
+    hist = hist.astype(np.float64)  # [G+1, L, G'+1]
+    fwd_total = hist.sum(axis=2)  # [G+1, L]
+    rev_total = hist.sum(axis=0)  # [L, G'+1]
+    block = hist[1:, v + 1:, 1:]  # later views only: each pair of views once
+    fwd = block / np.maximum(fwd_total[1:, v + 1:, None], 1)
+    rev = block / np.maximum(rev_total[None, v + 1:, 1:], 1)
+    strength = np.minimum(fwd, rev)
+    m, w, mp = np.nonzero(strength > share)
+    w_abs = w + v + 1
+    ok = mp < np.asarray(counts)[w_abs]
+    return [(float(s_), int(a_), int(b_))
+            for s_, a_, b_ in zip(strength[m, w, mp][ok], offsets[v] + m[ok], offsets[w_abs[ok]] + mp[ok])]
+
+
 def associate(stats: GITStats, merges: Sequence[ViewMerge], min_visibility: float,
-              share: float = 0.5, visible: np.ndarray | None = None) -> list[np.ndarray]:
+              share: float = 0.5, visible: np.ndarray | None = None, label_lists=None) -> list[np.ndarray]:
     """Global instance ids: for every view, [G_v + 1] lut from merged instance to a global id (0 -> 0).
 
     Instances (v, m) and (w, m') link when more than ``share`` of each one's Gaussians that are
     co-visible in the other view fall into the other; links are joined strongest first, never
     joining two instances of the same view. ``visible``: ``stats.visible(min_visibility)`` when
     already computed. The merged labels are built a row block at a time into per-Gaussian lists
-    (:func:`visible_lists`), never as an [N, L] table.
+    (:func:`visible_lists`), never as an [N, L] table; ``label_lists``: the labels' own lists with this
+    visible mask when made already (:func:`merge_all`'s): the merged lists are then read from them
+    (:func:`merged_lists`, the same entries).
     """
     views = len(merges)
-    if visible is None:
-        visible = stats.visible(min_visibility)
-    lists = visible_lists(lambda lo, hi: merged_label_rows(stats, merges, lo, hi), visible)
+    if label_lists is not None:
+        lists = merged_lists(label_lists, merges)
+    else:
+        if visible is None:
+            visible = stats.visible(min_visibility)
+        lists = visible_lists(lambda lo, hi: merged_label_rows(stats, merges, lo, hi), visible)
     counts = [m.num_instances for m in merges]
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     width = int(max(counts, default=0)) + 1
@@ -783,18 +912,7 @@ def associate(stats: GITStats, merges: Sequence[ViewMerge], min_visibility: floa
     for v, hist in enumerate(_histograms_of_lists(lists, stats.label.shape[1], width, width)):
         if counts[v] == 0:
             continue
-        hist = hist.astype(np.float64)  # [G+1, L, G'+1]
-        fwd_total = hist.sum(axis=2)  # [G+1, L]: Gaussians of (v, m) co-visible in w
-        rev_total = hist.sum(axis=0)  # [L, G'+1]: Gaussians of (w, m') co-visible in v
-        block = hist[1:, v + 1:, 1:]  # later views only: each pair of views once
-        fwd = block / np.maximum(fwd_total[1:, v + 1:, None], 1)
-        rev = block / np.maximum(rev_total[None, v + 1:, 1:], 1)
-        strength = np.minimum(fwd, rev)
-        m, w, mp = np.nonzero(strength > share)
-        w_abs = w + v + 1
-        mp_ok = mp < np.asarray(counts)[w_abs]
-        for s_, a_, b_ in zip(strength[m, w, mp][mp_ok], offsets[v] + m[mp_ok], offsets[w_abs[mp_ok]] + mp[mp_ok]):
-            links.append((float(s_), int(a_), int(b_)))
+        links += view_links(hist, v, share, counts, offsets)
     total = int(offsets[-1])
     uf = UnionFind(total)
     view_of = np.repeat(np.arange(views), counts)
@@ -830,7 +948,11 @@ def merge_all(stats: GITStats | GITVisible, hierarchies: Sequence,
     num_labels = int(stats.num_labels.max(initial=1))
     num_source = max(num_labels, max((h.num_patches + 1 for h in hierarchies), default=1))
     visible = stats.visible(params.min_visibility)
-    every = all_source_histograms(stats.label, visible, num_source, num_labels)
+    # the labels' per-Gaussian lists: the source histograms, every view's label counts and (through the
+    # merges' luts) the association's lists are read from them
+    lists = visible_lists(lambda lo, hi: stats.label[lo:hi], visible)
+    every = _histograms_of_lists(lists, stats.label.shape[1], num_source, num_labels)
+    counts = label_counts(lists, stats.label.shape[1], num_source) if params.method != "hierarchical" else None
     rule = params.rule
     if params.method == "hierarchical":
         comember = stack_comembership([comembership(h, num_labels, params.mask_weight) for h in hierarchies],
@@ -846,10 +968,11 @@ def merge_all(stats: GITStats | GITVisible, hierarchies: Sequence,
         rank = released_ids(hierarchy) if params.grouping == "released_greedy" else None
         merges.append(merge_view(stats, v, hierarchy.num_patches, c.pairs, params.threshold, params.min_visibility,
                                  hist=hist, rule=rule, visible=visible, grouping=params.grouping, rank=rank,
-                                 collapsed=c.collapsed, groups=c.groups, start=c.start))
+                                 collapsed=c.collapsed, groups=c.groups, start=c.start, counts=counts[v]))
     hist = None  # the last histogram block
-    every.close()  # zip stops on the hierarchies: the generator would hold its per-Gaussian lists
-    luts = associate(stats, merges, params.min_visibility, params.association_share, visible=visible)
+    every.close()
+    luts = associate(stats, merges, params.min_visibility, params.association_share, visible=visible,
+                     label_lists=lists)
     return merges, luts
 
 
