@@ -230,6 +230,14 @@ def test_related_patches_read_the_hierarchy_by_hand():
     np.testing.assert_array_equal(related, expect)
 
 
+def test_fused_loss_refuses_labels_outside_the_relation():
+    """A label the relation matrix does not cover is one sentence naming both sizes, not an index error."""
+    feats = torch.zeros(8, 16)
+    labels = torch.tensor([1, 1, 2, 2, 3, 3, 4, 4])
+    with pytest.raises(Trace3DError, match="label \\(4\\) lies outside the relation matrix of 3 labels"):
+        fused_contrastive_loss(feats, labels, kernel="printed", related=np.zeros((3, 3), bool))
+
+
 def released_contrastive_loss(features, labels, temperature):
     """The released code's loss (utils/loss_utils.py, contrastive_loss), written out from its formula:
     over all P x P pixel pairs, positives are the other pixels of the anchor's instance (the diagonal is

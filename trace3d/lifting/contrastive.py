@@ -135,12 +135,12 @@ def _sq_dist(a: Tensor, b: Tensor) -> Tensor:
 def related_patches(hierarchy) -> np.ndarray:
     """[P + 1, P + 1] bool from one view's patch hierarchy: True where two different patches lie under a
     common mask of the view (the pairs ``undecided: ignore`` leaves out); row and column 0 (uncovered
-    pixels) and the diagonal are False."""
-    member = hierarchy.membership().astype(np.int32)  # [P + 1, M]
-    related = (member @ member.T) > 0
+    pixels) and the diagonal are False: the merge's co-membership (:func:`~trace3d.tracing.consistency.comembership`)
+    without the patches' own pairs."""
+    from ..tracing.consistency import comembership
+
+    related = comembership(hierarchy, hierarchy.num_patches + 1) > 0
     np.fill_diagonal(related, False)
-    related[0, :] = False
-    related[:, 0] = False
     return related
 
 
