@@ -41,7 +41,7 @@ reproduce: $(STAMP)
 # (their xdist_group; tests/conftest.py).
 test: $(STAMP)
 	$(BIN)/python -m trace3d.tooling.warm --jobs $(CORES)
-	$(BIN)/python -m pytest -q -n $(CORES) --dist loadgroup tests
+	$(BIN)/python -m pytest -q -n $(CORES) --dist loadgroup --durations=20 tests
 
 # ruff (its rules in pyproject.toml's [tool.ruff]) over the Python, then Snakemake's own lint of the rules
 lint: $(STAMP)
