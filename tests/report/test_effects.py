@@ -70,6 +70,26 @@ def test_gap_share_and_paired_effects(spec):
     assert math.isnan(raw["PQ scene mean"])
 
 
+def test_segment_and_click_are_read_per_mask_model(tmp_path):
+    # the metrics without ground truth (the segment step's PQ^scene, one click's IoU) under two mask models
+    runs = []
+    for masks, seg, click in (("geometry", [0.30, 0.34], [0.60, 0.64]), ("oracle", [0.70, 0.74], [0.80, 0.90])):
+        for k, room in enumerate(("a", "b")):
+            folder = tmp_path / masks / room
+            folder.mkdir(parents=True)
+            data = {"extraction": {"mIoU": 0.5}, "nvs": {"mIoU": 0.8}, "segment": {"PQ": seg[k], "SQ": 0.9},
+                    "click": {"mIoU": click[k], "objects": 3}}
+            (folder / "metrics.json").write_text(json.dumps(data))
+            runs.append({"room": room, "masks": masks, "variant": "both_off", "seed": 0, "eval": str(folder)})
+    frame = effects.collect({"runs": runs})
+    summary, _ = effects.summarize(frame, ["both_off"], "both_off")
+    geo = summary[summary.masks == "geometry"].iloc[0]
+    assert geo["PQ segment mean"] == pytest.approx(32.0) and geo["click IoU mean"] == pytest.approx(62.0)
+    # the gap to exact masks: segment 40 points, click 23 points; the raw patches close none of it
+    assert geo["PQ segment gap share"] == pytest.approx(0.0) and geo["click IoU gap share"] == pytest.approx(0.0)
+    assert summary[summary.masks == "oracle"].iloc[0]["click IoU mean"] == pytest.approx(85.0)
+
+
 def test_writes_table_csv_and_plot(spec, tmp_path):
     out = tmp_path / "tables" / "effects.md"
     effects.write_effects(spec, out, tmp_path / "plots" / "effects.png")

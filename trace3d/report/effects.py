@@ -42,6 +42,9 @@ METRICS = (
     ("scene mIoU", ("panoptic", "mIoU"), 100.0),
     ("object mIoU 1pt", ("single_point", "extraction", "mIoU"), 100.0),
     ("NVS mIoU 1pt", ("single_point", "nvs", "mIoU"), 100.0),
+    # without ground truth: the `segment` step's objects (PQ^scene of its clusters) and one click's object
+    ("PQ segment", ("segment", "PQ"), 100.0),
+    ("click IoU", ("click", "mIoU"), 100.0),
 )
 # A gap share is only reported where exact masks beat the raw patches by at least this many points: a
 # metric that exact masks do not move (object mIoU on these rooms) has no gap to close.
