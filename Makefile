@@ -12,7 +12,7 @@ export NUMBA_CACHE_DIR := $(CURDIR)/.numba_cache
 export OMP_WAIT_POLICY := PASSIVE
 export PATH := $(CURDIR)/$(BIN):$(PATH)
 
-.PHONY: setup reproduce test lint dry-run clean-results
+.PHONY: setup reproduce geometry fern test lint dry-run clean-results
 
 setup: $(STAMP)
 
@@ -23,8 +23,8 @@ $(STAMP): requirements.txt pyproject.toml
 	$(BIN)/python -m pip install --quiet --no-deps -e .
 	touch $(STAMP)
 
-# The paper's tables first: target `paper_tables` (Tables 2, 3, 5 of every variant at lift seed 0; 145 of the
-# default grid's 720 jobs) and an HTML report of them, Tables 2 and 3 printed; then the rest of the grid
+# The paper's tables first: target `paper_tables` (Tables 2, 3, 5 of every variant at lift seed 0; 209 of the
+# default grid's 1,068 jobs) and an HTML report of them, Tables 2 and 3 printed; then the rest of the grid
 # (the study's mask models, oracle and seeds, the official protocol, robustness) and the report again
 # over everything. `trace3d progress` (in another terminal, in this folder) says where the run is.
 reproduce: $(STAMP)
@@ -35,6 +35,19 @@ reproduce: $(STAMP)
 	@echo "Tables 2 and 3 above (results/tables/, report: results/report.html); now the rest of the grid."
 	$(BIN)/snakemake --cores $(CORES) --show-failed-logs reproduce
 	$(BIN)/snakemake --cores 1 reproduce --report results/report.html
+
+# Without ground truth or SAM (docs/masks.md, docs/capture.md): the default rooms with masks from the fitted
+# geometry (config/geometry.yaml; the default run's fits, made first if absent), and the LLFF fern capture
+# (config/fern.yaml; data_root ../shared/captures, else `make fern FERN_ROOT=/path/to/captures`).
+GEOMETRY_EVALS := $(foreach k,0 1 2 3,$(foreach v,full both_off both_off_ignore,results/room$(k)@geometry/$(v)/eval))
+FERN_ROOT ?= ../shared/captures
+geometry: $(STAMP)
+	$(BIN)/python -m trace3d.tooling.warm --jobs $(CORES)
+	$(BIN)/snakemake --cores $(CORES) --show-failed-logs --configfile=config/geometry.yaml -- $(GEOMETRY_EVALS)
+
+fern: $(STAMP)
+	$(BIN)/python -m trace3d.tooling.warm --jobs $(CORES)
+	$(BIN)/snakemake --cores $(CORES) --show-failed-logs --configfile=config/fern.yaml --config data_root=$(FERN_ROOT) -- reproduce
 
 # The kernels are compiled first, over $(CORES) processes (trace3d/tooling/warm.py), so that no test compiles one;
 # then the suite runs on $(CORES) pytest-xdist workers, the whole-DAG runs taking turns on one of them
