@@ -23,16 +23,16 @@ $(STAMP): requirements.txt pyproject.toml
 	$(BIN)/python -m pip install --quiet --no-deps -e .
 	touch $(STAMP)
 
-# The paper's tables first: target `paper_tables` (Tables 2, 3, 5 of every variant at lift seed 0; 209 of the
-# default grid's 1,068 jobs) and an HTML report of them, Tables 2 and 3 printed; then the rest of the grid
+# The paper's tables first: target `paper_tables` (Tables 2, 3, 5 of the paper's own rows, config `paper_rows`,
+# at lift seed 0) and an HTML report of them, Tables 2 and 3 printed; then the rest of the grid
 # (the study's mask models, oracle and seeds, the official protocol, robustness) and the report again
 # over everything. `trace3d progress` (in another terminal, in this folder) says where the run is.
 reproduce: $(STAMP)
 	$(BIN)/python -m trace3d.tooling.warm --jobs $(CORES)
 	$(BIN)/snakemake --cores $(CORES) --show-failed-logs paper_tables
 	$(BIN)/snakemake --cores 1 paper_tables --report results/report.html
-	@cat results/tables/table2.md results/tables/table3.md
-	@echo "Tables 2 and 3 above (results/tables/, report: results/report.html); now the rest of the grid."
+	@cat results/tables/paper/table2.md results/tables/paper/table3.md
+	@echo "Tables 2 and 3 of the paper's rows above (results/tables/paper/, report: results/report.html); now the rest of the grid."
 	$(BIN)/snakemake --cores $(CORES) --show-failed-logs reproduce
 	$(BIN)/snakemake --cores 1 reproduce --report results/report.html
 

@@ -388,6 +388,14 @@ for _name in ORACLE.get("variants", []):
     if _name not in VARIANTS:
         raise ValueError(f"config oracle.variants: '{_name}' is not one of the config's variants ({', '.join(VARIANTS)}).")
 
+# The paper's own rows (`paper_rows:`, default every variant): Tables 2, 3 and 5 of these alone are written
+# first (rule tables_paper_rows, target paper_tables), so that `make reproduce` shows them before the jobs of
+# the variants beyond the paper.
+PAPER_ROWS = list(config.get("paper_rows") or VARIANTS)
+for _name in PAPER_ROWS:
+    if _name not in VARIANTS:
+        raise ValueError(f"config paper_rows: '{_name}' is not one of the config's variants ({', '.join(VARIANTS)}).")
+
 # --- lift seeds: `seeds: {values: [0, 1, 2], variants: [...]}` --------------------------------------
 # A seed other than 0 is a run of its own, `<variant>.s<seed>` (results/<scene>/full.s1/lift, eval, ...),
 # with the lift's `seed` set to it; seed 0 keeps the variant's plain folder.  Only the lift (and what

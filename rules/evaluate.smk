@@ -115,6 +115,29 @@ rule tables:
         "trace3d --threads {threads} tables --results {params.results:q} --out {params.out:q} --evals {input:q} > {log:q} 2>&1"
 
 
+# Tables 2, 3 and 5 of the paper's own rows alone (config `paper_rows`; results/tables/paper/), built by target
+# paper_tables before the jobs of the variants beyond the paper: what `make reproduce` shows first.
+use rule tables as tables_paper_rows with:
+    input:
+        expand(f"{RESULTS}/{{scene}}/{{variant}}/eval", scene=EVAL_SCENES, variant=PAPER_ROWS),
+    output:
+        **{
+            t: report(
+                f"{RESULTS}/tables/paper/{t}.md",
+                category="Tables (the paper's rows, written first)",
+                caption=f"../workflow/report/{t}.rst",
+            )
+            for t in TABLES
+        },
+        **{f"{t}_{ext}": f"{RESULTS}/tables/paper/{t}.{ext}" for t in TABLES for ext in ("csv", "tex")},
+    params:
+        results=RESULTS,
+        out=lambda w, output: os.path.dirname(output.table2),
+        code=step_code("tables"),
+    log:
+        f"{RESULTS}/logs/tables-paper.log",
+
+
 # Table 4 from the NVOS scenes (results/tables/table4.*).
 use rule tables as tables_nvos with:
     input:
