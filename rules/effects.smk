@@ -20,6 +20,11 @@ rule effects:
             category="Study",
             caption="../workflow/report/effects.rst",
         ),
+        masks_plot=report(
+            f"{RESULTS}/plots/effects_masks.png",
+            category="Study",
+            caption="../workflow/report/effects.rst",
+        ),
     params:
         spec=lambda w: shlex.quote(json.dumps(effects_spec(), sort_keys=True)),
         code=step_code("effects"),

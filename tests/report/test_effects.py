@@ -98,6 +98,12 @@ def test_writes_table_csv_and_plot(spec, tmp_path):
     assert re.search(r"\| 49( ± \d+)? % \|", text)  # full's gap share on object mIoU, 9.75 / 20
     assert (tmp_path / "tables" / "effects.csv").read_text().startswith("masks,variant")
     assert (tmp_path / "tables" / "effects_runs.csv").is_file()
+    # the raw variant under each mask model, beside the effects plot
+    from PIL import Image
+
+    masks_png = tmp_path / "plots" / "effects_masks.png"
+    assert masks_png == effects.masks_plot_path(tmp_path / "plots" / "effects.png")
+    assert Image.open(masks_png).size[0] > 300
     assert (tmp_path / "plots" / "effects.png").read_bytes()[:4] == b"\x89PNG"
 
 

@@ -19,7 +19,8 @@ oracle variant on exact object masks, may have fewer seeds than the variant, eac
 patches of its own seed): 0 = no better than the raw patches, 1 = as good as exact masks; it is left out
 ("–") where that gap is under ``MIN_GAP`` points (a metric the masks' quality does not move).
 
-Output: ``effects.md`` (Markdown), ``effects.csv`` (every number) and a plot.
+Output: ``effects.md`` (Markdown), ``effects.csv`` (every number), a plot of the paired effects and one of
+the raw variant under each mask model (``<plot>_masks.png``).
 """
 
 from __future__ import annotations
@@ -261,6 +262,49 @@ def plot(effects: pd.DataFrame, path: Path) -> None:
     plt.close(fig)
 
 
+# The mask models side by side (plot_masks): the metrics a user without ground truth cares about.
+MASK_METRICS = ("NVS mIoU", "PQ scene", "PQ segment", "click IoU")
+
+
+def masks_plot_path(plot_path: Path) -> Path:
+    """Where :func:`write_effects` puts the mask models' plot beside the effects plot."""
+    return Path(plot_path).with_name(Path(plot_path).stem + "_masks.png")
+
+
+def plot_masks(summary: pd.DataFrame, variant: str, path: Path) -> None:
+    """One variant (the raw patches) under every mask model: mean and 95 % interval of the metrics that
+    need no ground truth at query time, one panel each; what the masks alone are worth."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    part = summary[summary.variant == variant] if not summary.empty else summary
+    metrics = [m for m in MASK_METRICS if f"{m} mean" in part and part[f"{m} mean"].notna().any()] or ["NVS mIoU"]
+    models = sorted(part.masks.unique(), key=lambda m: (m == "oracle", m != "default", m)) if not part.empty else []
+    fig, axes = plt.subplots(1, len(metrics), figsize=(3.2 * len(metrics), 0.4 * max(len(models), 1) + 1.6),
+                             squeeze=False, sharey=True)
+    for ax, m in zip(axes[0], metrics):
+        rows = [part[part.masks == model].iloc[0] for model in models]
+        xs = [r[f"{m} mean"] if f"{m} mean" in r else np.nan for r in rows]
+        es = [np.nan_to_num(r[f"{m} ci95"]) if f"{m} ci95" in r else 0.0 for r in rows]
+        ax.barh(range(len(models)), np.nan_to_num(xs), xerr=es, capsize=3, color="tab:blue", alpha=0.7)
+        for i, x in enumerate(xs):
+            if np.isfinite(x):
+                ax.text(1, i, f"{x:.1f}", va="center", fontsize=7, color="white")
+        ax.set_xlim(0, 100)
+        ax.set_title(m, fontsize=9)
+        ax.grid(axis="x", alpha=0.3)
+    axes[0][0].set_yticks(range(len(models)), [f"{model} masks" for model in models], fontsize=8)
+    axes[0][0].invert_yaxis()
+    fig.suptitle(f"`{variant}` under each mask model: mean and 95 % CI over rooms × lift seeds", fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_file(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
 def write_effects(spec: dict, out: Path, plot_path: Path | None = None) -> None:
     frame = collect(spec)
     summary, effects = summarize(frame, list(spec.get("oracle") or []), str(spec.get("raw", "both_off")))
@@ -279,3 +323,4 @@ def write_effects(spec: dict, out: Path, plot_path: Path | None = None) -> None:
         tmp.write_text(frame.sort_values(["masks", "variant", "room", "seed"]).to_csv(index=False, float_format="%.6g"))
     if plot_path is not None:
         plot(effects, Path(plot_path))
+        plot_masks(summary, str(spec.get("raw", "both_off")), masks_plot_path(Path(plot_path)))
