@@ -253,7 +253,8 @@ def plot(effects: pd.DataFrame, path: Path) -> None:
     axes[0][0].set_yticks(range(len(labels)), [label.split(": ")[0] + "\n" + label.split(": ")[-1] for label in labels],
                           fontsize=7)
     axes[0][0].invert_yaxis()
-    axes[0][-1].legend(fontsize=7, loc="lower right")
+    if models:
+        axes[0][-1].legend(fontsize=7, loc="lower right")
     fig.suptitle("Paired effect of each stage: mean and 95 % CI over rooms × lift seeds")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
