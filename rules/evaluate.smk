@@ -131,7 +131,7 @@ use rule tables as tables_paper_rows with:
         },
         **{f"{t}_{ext}": f"{RESULTS}/tables/paper/{t}.{ext}" for t in TABLES for ext in ("csv", "tex")},
     params:
-        results=RESULTS,
+        results=lambda w, output: os.path.dirname(os.path.dirname(os.path.dirname(output.table2))),
         out=lambda w, output: os.path.dirname(output.table2),
         code=step_code("tables"),
     log:

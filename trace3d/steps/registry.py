@@ -186,7 +186,7 @@ STEPS: tuple[Step, ...] = (
          (arg("--results", required=True, help="results folder"),
           arg("--out", required=True, help="output folder (results/tables)"),
           arg("--evals", nargs="+", help="only these evaluate folders (<results>/<scene>/<variant>/eval)")),
-         ("trace3d.report.tables:write_tables",), rules=("tables", "tables_official", "tables_nvos"),
+         ("trace3d.report.tables:write_tables",), rules=("tables", "tables_paper_rows", "tables_official", "tables_nvos"),
          kernels=False),
     Step("robustness", "object / NVS mIoU per variant against the simulated mask inconsistency",
          (arg("--spec", required=True,
