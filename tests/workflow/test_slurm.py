@@ -213,8 +213,8 @@ def _check_against_local(local, local_run, local_log, cluster, elsewhere, env_lo
     for rule in local_rules:
         planned.pop(rule)
     assert {"scene", "poses", "masks", "patches", "gaussians", "trace", "merge", "refine", "lift", "evaluate",
-            "evaluate_official", "tables", "tables_paper_rows", "tables_official", "scenes_table", "reconstruction_table",
-            "tracing_table"} == set(planned), sorted(planned)
+            "evaluate_official", "tables", "tables_paper_rows", "tables_official", "scenes_table",
+            "reconstruction_table", "tracing_table"} == set(planned), sorted(planned)
     jobs = _jobs_of_run(run_id)
     assert all(j["state"] == "COMPLETED" for j in jobs), jobs
     by_rule = {re.match(r"rule_(\w+?)(?:_wildcards_|$)", j["comment"]).group(1): j for j in jobs}
