@@ -29,6 +29,16 @@ include: "rules/robustness.smk"
 include: "rules/effects.smk"
 
 
+# A local run needs no job-rate limiter (the cores bound the job starts), and Snakemake's keeps one
+# re-evaluation timer per finished job alive (trace3d/tooling/scheduling.py); on a cluster it stays.
+onstart:
+    from trace3d.tooling.scheduling import unthrottle_local
+
+    _line = unthrottle_local(workflow)
+    if _line:
+        logger.info(_line)
+
+
 rule reproduce:
     default_target: True
     input:

@@ -106,6 +106,8 @@ def test_end_to_end_tiny(tmp_path):
     # other jobs (600 s ran out on 2026-11-27 under a load average of 10)
     result = run_snakemake(tmp_path, "--cores", "2", "reproduce", config=config)
     assert result.returncode == 0, result.stderr[-4000:]
+    # the Snakefile's onstart took Snakemake's job-rate limiter off this local run (trace3d/tooling/scheduling.py)
+    assert "job-rate limiter is off for this local run" in result.stderr
     for scene in ("a",):
         root = results / scene / "scene"
         assert len(list((root / "images").glob("*.png"))) == 6
