@@ -4,7 +4,10 @@ from types import SimpleNamespace
 from trace3d.tooling.scheduling import unthrottle_local
 
 
-def _workflow(local: bool, limiter=object()):
+_LIMITER = object()
+
+
+def _workflow(local: bool, limiter=_LIMITER):
     return SimpleNamespace(local_exec=local, scheduler=SimpleNamespace(job_rate_limiter=limiter))
 
 
