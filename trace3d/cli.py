@@ -202,6 +202,10 @@ def _cmd_bench(args: argparse.Namespace) -> None:
         from .bench.startup import run_bench
 
         result = run_bench(rounds=args.rounds, commands=["tables", "evaluate"] if args.quick else None)
+    elif args.name == "scheduler":
+        from .bench.scheduler import run_bench
+
+        result = run_bench(jobs=60 if args.quick else 200)
     elif args.name == "merge-vote":
         from .bench.merge_vote import run_bench
 
@@ -264,7 +268,7 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="benchmarks; print one JSON object")
     p.add_argument("name", choices=["render", "synthetic", "trace", "lift", "lift-forms", "fit", "fit-sweep",
-                                    "prompts", "evaluate", "startup", "merge-vote"])
+                                    "prompts", "evaluate", "startup", "merge-vote", "scheduler"])
     p.add_argument("--room", default="results/room0",
                    help="trace, lift: a fitted room's results folder (scene/, poses/, gaussians/, patches/ or "
                         "merge-paper/instances); prompts: a room's results folder or canonical scene with ground "
