@@ -195,7 +195,8 @@ def test_the_packages_form_no_import_cycle():
 # ----------------------------------------------------------------------------------------------
 
 STACK = [
-    ["errors", "io", "params", "threads", "scene", "geometry", "tooling.compiling", "tooling.cputarget", "preview"],
+    ["errors", "io", "params", "threads", "scene", "geometry", "tooling.compiling", "tooling.cputarget",
+     "tooling.scheduling", "preview"],
     ["datasets", "poses", "pointcloud"],
     ["render"],
     ["gaussians"],
