@@ -267,7 +267,9 @@ def progress_text(results: Path, log: Path | None = None, workdir: Path = Path("
             if est["unestimated"]:
                 names = ", ".join(f"{rule} {n}" for rule, n in sorted(est["unestimated"].items()))
                 if est["seconds"] > 0:
-                    out.append(f"time left: more than {_duration(est['seconds'])} (the finished jobs' mean time per "
+                    # "about", not "more than": the per-rule means come from the jobs finished so far, which
+                    # need not be the typical ones (docs/history/runs.md: 1 h 44 min said, 1 h 23 min taken)
+                    out.append(f"time left: about {_duration(est['seconds'])} (the finished jobs' mean time per "
                                f"rule / {run.cores} cores), plus {names} job(s) of rules with no finished job yet")
                 else:
                     out.append(f"time left: not estimated yet (no job of {names} has finished)")

@@ -82,7 +82,7 @@ def test_progress_text_says_what_is_left_and_which_tables_are_done(tmp_path):
     text = progress_text(results, log, now=now)
     assert "jobs: 3 of 7 done, 2 running, 2 waiting (running)" in text
     assert "left by rule: evaluate 2 (1 running), lift 1 (1 running), tables 1" in text
-    assert "time left: more than 6 min" in text and "tables 1 job(s) of rules with no finished job yet" in text
+    assert "time left: about 6 min" in text and "tables 1 job(s) of rules with no finished job yet" in text
     assert "waiting  Table 2 (3D object extraction)" in text
     assert "study effects" in text and "before this run" in text
     assert "robustness" not in text  # neither planned nor on disk
