@@ -497,6 +497,75 @@ def test_query_kernels_give_numpys_distances_and_masks_to_the_bit(d):
                 assert np.array_equal(one.mask(fmap), want[k] <= one.thresholds[0])
 
 
+@pytest.mark.parametrize("d", [4, 8, 16, 21])
+def test_object_masks_kernel_with_its_bounding_balls_equals_the_numpy_masks(d):
+    """The evaluation's masks of several objects at one view (:func:`_query_mask_objects`, which refuses a
+    pixel outside an object's bounding ball after one partial distance) equal each object's numpy mask
+    (:meth:`QueryPoints.mask`'s twin) bit for bit: objects of 1 to 6 points, thresholds at distances that
+    occur (and one float32 step below) over the whole range, an infinite and a NaN threshold, an empty
+    object. The ball must refuse most pixels of a small object (else it saves nothing)."""
+    from trace3d.lifting.kernels.query import _query_mask_objects, object_balls
+    from trace3d.lifting.query import QueryPoints
+
+    rng = np.random.default_rng(100 + d)
+    fmap = (rng.standard_normal((31, 37, d)) * 2.0).astype(np.float32)
+    objects = []
+    for size in (1, 2, 3, 6, 0, 4, 2):
+        at = (rng.integers(0, 31, size), rng.integers(0, 37, size))
+        if size == 6:  # a tight object: its points about one pixel's feature
+            at = (np.full(size, at[0][0]), np.full(size, at[1][0]))
+        feats = np.ascontiguousarray(fmap[at] + rng.standard_normal((size, d)).astype(np.float32) * 0.05)
+        dist = QueryPoints(feats, np.zeros(size, np.float32), np.zeros((size, 2), np.int64),
+                           np.zeros(size, np.float32)).distances_numpy(fmap) if size else np.zeros((0, 31, 37))
+        thr = np.array([np.sort(dist[k].ravel())[rng.integers(1, 60)] for k in range(size)], np.float32)
+        if size == 3:
+            thr[1] = np.nextafter(thr[1], np.float32(0))
+        if size == 4:
+            thr[2] = np.float32(np.inf)
+        if size == 2 and objects and len(objects) > 5:
+            thr[0] = np.float32(np.nan)
+        objects.append(QueryPoints(feats, thr, np.zeros((size, 2), np.int64), np.zeros(size, np.float32)))
+    feats = np.ascontiguousarray(np.concatenate([q.features.reshape(-1, d) for q in objects]), np.float32)
+    thresholds = np.ascontiguousarray(np.concatenate([q.thresholds for q in objects]), np.float32)
+    starts = np.zeros(len(objects) + 1, np.int64)
+    starts[1:] = np.cumsum([q.features.shape[0] for q in objects])
+    centres, radii = object_balls(feats, thresholds, starts)
+    assert np.isinf(radii[4]) and np.isinf(radii[5])  # no point; an infinite threshold
+    out = np.empty((len(objects), 31, 37), np.bool_)
+    _query_mask_objects(fmap, feats, thresholds, starts, centres, radii, out)
+    for o, q in enumerate(objects):
+        want = (q.distances_numpy(fmap) <= q.thresholds[:, None, None]).any(0) if q.features.shape[0] \
+            else np.zeros((31, 37), bool)
+        assert np.array_equal(out[o], want), o
+    # thresholds swept over occurring distances: the ball never changes a pixel
+    q = objects[3]
+    dist = q.distances_numpy(fmap)
+    for t in np.sort(dist.ravel())[::53]:
+        for thr in (t, np.nextafter(t, np.float32(0))):
+            th = np.full(6, thr, np.float32)
+            c, r = object_balls(q.features, th, np.array([0, 6]))
+            one = np.empty((1, 31, 37), np.bool_)
+            _query_mask_objects(fmap, q.features, th, np.array([0, 6]), c, r, one)
+            assert np.array_equal(one[0], (dist <= th[:, None, None]).any(0))
+    if d >= 8:  # the bound refuses most pixels of a tight object
+        far = np.sqrt(((fmap - centres[3]) ** 2).sum(2)) > radii[3]
+        assert far.mean() > 0.5
+        # a pixel on the bounding sphere itself (it differs from the centre in the first eight dimensions
+        # only, so the partial distance is the whole one) that lies on its point's threshold: kept
+        step = np.zeros(d, np.float32)
+        step[:8] = rng.standard_normal(8).astype(np.float32)
+        pair = np.ascontiguousarray(np.stack([fmap[5, 5], fmap[5, 5] + step]), np.float32)
+        edge = fmap.copy()
+        edge[0, 0] = pair[1] + step * np.float32(1.5)
+        th = np.array([0.0, 0.0], np.float32)
+        probe = QueryPoints(pair, th, np.zeros((2, 2), np.int64), np.zeros(2, np.float32))
+        th[1] = probe.distances_numpy(edge)[1, 0, 0]
+        c, r = object_balls(pair, th, np.array([0, 2]))
+        got = np.empty((1, 31, 37), np.bool_)
+        _query_mask_objects(edge, pair, th, np.array([0, 2]), c, r, got)
+        assert got[0, 0, 0] and np.array_equal(got[0], (probe.distances_numpy(edge) <= th[:, None, None]).any(0))
+
+
 # ----------------------------------------------------------------------------------------------
 # Lifting separates two objects
 # ----------------------------------------------------------------------------------------------

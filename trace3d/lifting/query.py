@@ -43,6 +43,7 @@ from ..gaussians import GaussianModel
 from ..scene import Camera, Scene
 from . import ObjectQuery
 from .kernels.query import (_add_masked_rows, _kernel_applies, _query_distances, _query_mask, _query_mask_objects,
+                            object_balls,
                             _query_mask_stack)
 
 log = logging.getLogger(__name__)
@@ -567,7 +568,8 @@ class FeatureLifted:
             starts = np.zeros(len(points) + 1, np.int64)
             starts[1:] = np.cumsum([q.features.shape[0] for q in points])
             out = np.empty((len(points),) + fmap.shape[:2], np.bool_)
-            _query_mask_objects(fmap, feats, thresholds, starts, out)
+            centres, radii = object_balls(feats, thresholds, starts)
+            _query_mask_objects(fmap, feats, thresholds, starts, centres, radii, out)
             return list(out)
         return [q.mask(fmap) for q in points]
 

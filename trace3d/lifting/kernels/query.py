@@ -155,23 +155,66 @@ def _query_mask_stack(stack, feats, thresholds, out):
 
 
 @njit(parallel=True, cache=True)
-def _query_mask_objects(fmap, feats, thresholds, starts, out):
+def _query_mask_objects(fmap, feats, thresholds, starts, centres, radii, out):
     """:func:`_query_mask` of several objects' query points at one view in one call: object ``o`` has
     the points ``starts[o]:starts[o + 1]`` of ``feats`` [sum Q_o, D] and ``thresholds``; ``out`` is
     [O, H, W] (the evaluation's pass asks every object's mask at each view; one parallel launch per
-    view)."""
+    view).
+
+    ``centres`` [O, D] and ``radii`` [O] (:func:`object_balls`) bound each object's points: a pixel whose
+    first eight dimensions alone put it farther than ``radii[o]`` from ``centres[o]`` is outside every
+    point's ball, so it is refused after one partial distance instead of one per point (the answer is
+    exactly the points' own test's: the radius has a margin above every rounding, :func:`object_balls`).
+    An object with one point, fewer than eight dimensions or an infinite radius is tested point by
+    point."""
     o_count = out.shape[0]
-    h, w, _ = fmap.shape
+    h, w, d = fmap.shape
     for oy in prange(o_count * h):
         o = oy // h
         y = oy - o * h
+        bound = d >= 8 and starts[o + 1] - starts[o] > 1 and radii[o] < np.inf
         for x in range(w):
             hit = False
+            if bound and np.sqrt(_combine(_first_lanes(fmap, y, x, centres, o))) > radii[o]:
+                out[o, y, x] = False
+                continue
             for k in range(starts[o], starts[o + 1]):
                 if _within(fmap, y, x, feats, k, thresholds[k]):
                     hit = True
                     break
             out[o, y, x] = hit
+
+
+def object_balls(feats: np.ndarray, thresholds: np.ndarray, starts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per object (points ``starts[o]:starts[o + 1]`` of ``feats`` [Q, D] float32 with ``thresholds`` [Q]):
+    the centre [O, D] float32 (the points' mean) and a radius [O] float32 such that a feature farther
+    than it from the centre, by :func:`_query_mask_objects`'s partial float32 sum, is farther than
+    ``thresholds[k]`` from every point ``k`` by :func:`_within`'s float32 test.
+
+    By the triangle inequality a feature at true distance r from the centre is at least
+    r - |centre - f_k| from point k; R = max_k (|centre - f_k| + t_k) (float64) bounds the balls, and the
+    radius R (1 + 1e-3) leaves room for the float32 roundings of both tests (relative errors below 1e-5
+    for D <= 128: a partial sum of squares is at most the full one, rounding is monotone). An object with
+    no point, or non-finite values, gets an infinite radius (tested point by point)."""
+    starts = np.asarray(starts, np.int64)
+    o_count = starts.shape[0] - 1
+    counts = np.diff(starts)
+    centres = np.zeros((o_count, feats.shape[1]), np.float32)
+    radii = np.full(o_count, np.inf, np.float32)
+    full = np.flatnonzero(counts > 0)
+    if not full.size:
+        return centres, radii
+    f64 = np.asarray(feats, np.float64)
+    centres[full] = (np.add.reduceat(f64, starts[full], axis=0) / counts[full, None]).astype(np.float32)
+    owner = np.repeat(np.arange(o_count), counts)
+    reach = np.sqrt(((f64 - centres[owner].astype(np.float64)) ** 2).sum(1)) + np.asarray(thresholds, np.float64)
+    bound = np.maximum.reduceat(reach, starts[full]) * (1.0 + 1e-3)
+    with np.errstate(over="ignore", invalid="ignore"):
+        r32 = bound.astype(np.float32)
+        r32 = np.where(r32 >= bound, r32, np.nextafter(r32, np.float32(np.inf)))  # never below the float64 bound
+    ok = np.isfinite(bound) & np.isfinite(centres[full]).all(1)
+    radii[full[ok]] = r32[ok]
+    return centres, radii
 
 
 @njit(cache=True)
