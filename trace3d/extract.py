@@ -4,8 +4,9 @@ No reference mask is needed. From the clicked pixel of training view V (``select
 default; SAGA-style, then 3D connectivity):
 
 1. **seeds**: the Gaussians that blend into the clicked pixel and its 8 neighbours (one trace of V);
-   the *query* is the lifted feature of the seed with the most blending weight at the click (the
-   surface clicked on; a rendered feature at an object's border blends two objects');
+   the *query* is the lifted feature of the surface clicked on (a rendered feature at an object's
+   border blends two objects'): ``query: medoid``, the weighted medoid of the heavy seeds' features
+   (:func:`click_query`; ``top``: the heaviest seed's, the rule before);
 2. **similar**: every Gaussian seen in training whose feature lies within the threshold t of the query;
 3. **connected**: of the similar Gaussians only those linked to a similar seed through edges of the
    Gaussians' kNN graph (``neighbours`` = 12, by centre) whose both ends are similar: another object
@@ -74,6 +75,12 @@ class ExtractParams:
             other-object distance (:func:`~trace3d.segment.feature_threshold`); ``data``: that distance itself,
             the same for every click (the rule before).
         threshold_scale: see ``threshold_rule``.
+        query: the feature the click selects by, from the Gaussians under the click and their blending
+            weights there (:func:`click_query`): ``medoid`` (default), of the seeds with at least
+            ``query_min_weight`` of the heaviest one's weight the one whose feature has the least weighted
+            sum of distances to all the seeds' (the surface clicked on, robust to a stray heavy seed);
+            ``top``, the feature of the seed with the most weight (the rule before).
+        query_min_weight: see ``query`` (in [0, 1]).
         stable_min_scale, stable_max_scale, stable_steps: ``stable``: the thresholds tried, ``stable_steps`` + 1
             geometric steps from ``stable_min_scale`` to ``stable_max_scale`` times the data's distance.
         stable_span: ``stable``: a threshold's growth is measured from this many steps below it to this many
@@ -104,6 +111,8 @@ class ExtractParams:
     selection: Literal["features", "segment", "region"] = "features"
     threshold: float | None = None
     threshold_rule: Literal["stable", "data"] = "stable"
+    query: Literal["medoid", "top"] = "medoid"
+    query_min_weight: float = 0.25
     threshold_scale: float = 1.0
     stable_min_scale: float = 0.2
     stable_max_scale: float = 3.0
@@ -135,6 +144,8 @@ class ExtractParams:
         if not 0 < self.stable_min_scale < self.stable_max_scale or not 1 <= self.stable_span < self.stable_steps // 2:
             raise ValueError(f"stable_min_scale must be in (0, stable_max_scale) and stable_span in [1, stable_steps / 2), "
                              f"got {self.stable_min_scale}, {self.stable_max_scale}, {self.stable_span}, {self.stable_steps}")
+        if not 0.0 <= self.query_min_weight <= 1.0:
+            raise ValueError(f"query_min_weight must be in [0, 1], got {self.query_min_weight}")
         if self.stable_prior < 0 or not 0 < self.stable_max_share <= 1 or self.stable_min_gaussians < 1:
             raise ValueError(f"stable_prior must be >= 0, stable_max_share in (0, 1] and stable_min_gaussians >= 1, got "
                              f"{self.stable_prior}, {self.stable_max_share}, {self.stable_min_gaussians}")
@@ -309,9 +320,10 @@ class ClickScene:
             return seg.instance == int(np.argmax(votes))
         query = np.asarray(query, np.float64)
         if seed_weights is not None and seeds.size:
-            # the feature of the surface clicked on: the Gaussian with the most weight there (a rendered
-            # feature at an object's border blends two objects' features)
-            query = self.features[seeds[int(np.argmax(seed_weights))]]
+            # the feature of the surface clicked on, from the Gaussians there (a rendered feature at an
+            # object's border blends two objects' features)
+            query = click_query(self.features[seeds], np.asarray(seed_weights, np.float64), self.params.query,
+                                self.params.query_min_weight)
         inside = np.isin(seeds, self.seen)
         local = np.searchsorted(self.seen, seeds[inside])
         if self.params.threshold is not None or self.params.threshold_rule == "data":
@@ -334,6 +346,23 @@ class ClickScene:
         d = np.sqrt(((f - np.asarray(query, np.float64)[None, :]) ** 2).sum(1))
         indptr, neighbours = self.shared.neighbour_lists()
         return bottleneck_distances(d, indptr, neighbours, seeds, limit)
+
+
+def click_query(features: np.ndarray, weights: np.ndarray, rule: str = "medoid", min_weight: float = 0.25) -> np.ndarray:
+    """[D] float64: the query feature of a click from the features [K, D] of the Gaussians under it and
+    their blending weights [K] there. ``top``: the feature with the most weight (ties: the first);
+    ``medoid``: of the features whose weight is at least ``min_weight`` x the largest, the one whose
+    weighted sum of distances to all K features is least (ties: the first), i.e. the feature most of
+    the click's weight agrees with: a heavy stray Gaussian (a floater, the support seen through a gap)
+    does not become the query when the other heavy ones, on the object, agree with each other."""
+    features = np.asarray(features, np.float64)
+    weights = np.asarray(weights, np.float64)
+    if rule == "top" or len(features) < 3:
+        return features[int(np.argmax(weights))]
+    diff = features[:, None, :] - features[None, :, :]
+    cost = np.sqrt((diff * diff).sum(-1)) @ weights
+    cost[weights < min_weight * weights.max()] = np.inf
+    return features[int(np.argmin(cost))]
 
 
 def click_distances(features: np.ndarray, query: np.ndarray, edges: np.ndarray, seeds: np.ndarray,

@@ -8,8 +8,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from trace3d.extract import (ClickScene, ExtractParams, click_distances, click_distances_reference, select_connected,
-                             select_connected_reference, stable_threshold)
+from trace3d.extract import (ClickScene, ExtractParams, click_distances, click_distances_reference, click_query,
+                             select_connected, select_connected_reference, stable_threshold)
 from trace3d.segment import (SeenGraph, SegmentParams, _find, _merge_edges, _merge_edges_reference, _roots,
                              bottleneck_distances, edge_distances, feature_threshold, gaussian_graph,
                              neighbour_lists, segment_gaussians)
@@ -77,6 +77,34 @@ def test_click_selects_the_object_under_it_and_not_its_far_twin():
     seg_click = ClickScene(means, features, weights, ExtractParams(selection="segment"))
     np.testing.assert_array_equal(seg_click.select(features[on_a[0]], on_a, np.ones(on_a.size)),
                                   seg_click.segments().instance == seg_click.segments().instance[on_a[0]])
+
+
+def test_click_query_is_the_seeds_medoid_not_a_heavy_stray():
+    """The Gaussians under a click on box A, one of them a heavy stray with the wall's feature (a floater in
+    front of the object, the support seen through a gap): ``query: top`` takes the stray's feature and
+    returns the wall, ``medoid`` the feature the heavy seeds agree on and returns box A."""
+    means, features, weights, truth = toy_room()
+    on_a = np.flatnonzero(truth == 1)[:6]
+    stray = np.flatnonzero(truth == 0)[0]
+    seeds = np.concatenate([on_a, [stray]])
+    seed_weights = np.array([0.30, 0.25, 0.20, 0.15, 0.10, 0.05, 0.40])
+    # the medoid: the heavy seeds' feature with the least weighted distance to all seeds' (box A's)
+    q = click_query(features[seeds], seed_weights)
+    assert q.tolist() in features[on_a].tolist()
+    np.testing.assert_array_equal(click_query(features[seeds], seed_weights, "top"), features[stray])
+    # only the seeds with at least min_weight of the heaviest one's weight are candidates
+    candidates = np.flatnonzero(seed_weights >= 0.5 * seed_weights.max())
+    assert any(np.array_equal(click_query(features[seeds], seed_weights, min_weight=0.5), features[seeds[c]])
+               for c in candidates)
+    # fewer than 3 seeds: the heaviest one's feature
+    np.testing.assert_array_equal(click_query(features[seeds[:2]], np.array([0.1, 0.3])), features[seeds[1]])
+    medoid = ClickScene(means, features, weights, ExtractParams())
+    np.testing.assert_array_equal(medoid.select(None, seeds, seed_weights), truth == 1)
+    top = ClickScene(means, features, weights, ExtractParams(query="top"), medoid.shared)
+    wrong = top.select(None, seeds, seed_weights)
+    assert wrong[stray] and not wrong[truth != 0].any()  # part of the wall, nothing of box A
+    with pytest.raises(ValueError, match="query_min_weight"):
+        ExtractParams(query_min_weight=1.5)
 
 
 def test_threshold_tells_same_object_pairs_from_others():
