@@ -457,7 +457,10 @@ def stable_threshold(reach: np.ndarray, weights: np.ndarray, base: float, params
     """
     p = params
     grid = base * np.exp(np.linspace(np.log(p.stable_min_scale), np.log(p.stable_max_scale), p.stable_steps + 1))
-    order = np.argsort(reach, kind="stable")
+    # only the points a threshold of the grid can select (most are beyond its largest, inf): in a stable
+    # sort of every point they come first, in this order, so the counts and sums below are the same bits
+    order = np.flatnonzero(reach <= grid[-1])
+    order = order[np.argsort(reach[order], kind="stable")]
     sorted_reach = reach[order]
     cum = np.concatenate([[0.0], np.cumsum(np.asarray(weights, np.float64)[order])])
     count = np.searchsorted(sorted_reach, grid, side="right")

@@ -401,7 +401,10 @@ def bottleneck_distances(d: np.ndarray, indptr: np.ndarray, neighbours: np.ndarr
     ascending order, its twin ``click_distances_reference`` a plain Dijkstra."""
     seeds = np.unique(np.asarray(seeds, np.int64))
     d = np.ascontiguousarray(d, np.float64)
-    order = np.argsort(d).astype(np.int64, copy=False)  # ties in any order: the values do not depend on it
+    # the walk's queue: the points a level can enter (d <= limit; the others are never entered), ascending;
+    # ties in any order: the values do not depend on it
+    order = np.flatnonzero(d <= limit)
+    order = order[np.argsort(d[order])].astype(np.int64, copy=False)
     return _bottleneck_reach(np.ascontiguousarray(indptr, np.int64), np.ascontiguousarray(neighbours, np.int64), d,
                              order, seeds, float(limit))
 

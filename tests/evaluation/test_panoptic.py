@@ -459,3 +459,29 @@ def test_click_masks_from_kept_weights_equal_the_rendered_ones(tiny_features, tm
     assert not calls
     kept.pop("seconds"), rendered.pop("seconds")
     assert json.dumps(kept, sort_keys=True) == json.dumps(rendered, sort_keys=True)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_mutual_reachability_mst_kernel_equals_its_twin_bit_for_bit(seed):
+    """HDBSCAN's minimum spanning tree: the kernel (points swapped to a contiguous front, distances
+    vectorised across points) against the dense numpy Prim, edge by edge to the bit, on data full of
+    ties (integer coordinates, repeated points, equal core distances) where the lowest-index rule
+    decides, and on continuous data; its total weight equals scipy's spanning tree of the same graph."""
+    from scipy.sparse.csgraph import minimum_spanning_tree
+
+    from trace3d.evaluation.panoptic import _mutual_reachability_mst, _mutual_reachability_mst_reference
+
+    rng = np.random.default_rng(seed)
+    tied = rng.integers(0, 4, size=(60, 3)).astype(np.float64)
+    tied[10:15] = tied[3]  # repeated points: zero distances
+    cont = rng.normal(size=(97, 16))
+    for x, core in ((tied, np.full(60, 1.0)), (tied, rng.integers(0, 3, 60).astype(np.float64)),
+                    (cont, np.sort(rng.random(97))[rng.permutation(97)])):
+        got = _mutual_reachability_mst(x, core)
+        want = _mutual_reachability_mst_reference(x, core)
+        assert got.shape == (len(x) - 1, 3)
+        assert got.tobytes() == want.tobytes()
+        d = np.sqrt(((x[:, None, :] - x[None, :, :]) ** 2).sum(2))
+        reach = np.maximum(np.maximum(d, core[:, None]), core[None, :]) + 1.0  # + 1: scipy drops zero weights
+        np.fill_diagonal(reach, 0.0)
+        assert np.isclose(got[:, 2].sum() + len(got), minimum_spanning_tree(reach).sum())

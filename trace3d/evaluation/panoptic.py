@@ -144,34 +144,97 @@ def _mutual_reachability_mst(x: np.ndarray, core: np.ndarray) -> np.ndarray:
 
 @njit(cache=True)
 def _prim(x, core, edges):
+    """Prim's algorithm for :func:`_mutual_reachability_mst`. The points not yet in the tree are kept at
+    the front of a transposed copy of ``x`` (a point that joins is swapped with the last of them), so the
+    distances to the newest tree point are a loop over contiguous columns that LLVM vectorises across
+    points; each point's squared distance still adds its dimensions in order, so the values are those
+    of a point-by-point loop (:func:`_mutual_reachability_mst_reference`, the twin). The next point is the
+    one of least reach, ties to the lowest index."""
     s, dim = x.shape
-    in_tree = np.zeros(s, np.bool_)
+    xt = np.empty((dim, s))
+    for c in range(dim):
+        for j in range(s):
+            xt[c, j] = x[j, c]
+    perm = np.arange(s)
     best = np.full(s, np.inf)
     source = np.zeros(s, np.int64)
-    current = 0
+    core_p = core.copy()
+    d2 = np.empty(s)
+    xc = np.empty(dim)
+    m = s
+    q = 0  # the point that joins: position 0 (point 0) first
+    for e in range(-1, s - 1):
+        current = perm[q]
+        if e >= 0:
+            edges[e, 0] = source[q]
+            edges[e, 1] = current
+            edges[e, 2] = best[q]
+        m -= 1  # swap the joining point out of the active front
+        for c in range(dim):
+            xt[c, q], xt[c, m] = xt[c, m], xt[c, q]
+        perm[q], perm[m] = perm[m], perm[q]
+        best[q], best[m] = best[m], best[q]
+        source[q], source[m] = source[m], source[q]
+        core_p[q], core_p[m] = core_p[m], core_p[q]
+        if m == 0:
+            break
+        for c in range(dim):
+            xc[c] = x[current, c]
+        for p in range(m):
+            d2[p] = 0.0
+        for c in range(dim):
+            v = xc[c]
+            for p in range(m):
+                t = xt[c, p] - v
+                d2[p] += t * t
+        cc = core[current]
+        q = -1
+        q_d = np.inf
+        q_i = s
+        for p in range(m):
+            d = max(np.sqrt(d2[p]), core_p[p], cc)
+            if d < best[p]:
+                best[p] = d
+                source[p] = current
+            if best[p] < q_d or (best[p] == q_d and perm[p] < q_i):
+                q_d = best[p]
+                q_i = perm[p]
+                q = p
+        if q < 0:  # no finite reach (NaN features): the lowest-index point joins at inf
+            q_i = s
+            for p in range(m):
+                if perm[p] < q_i:
+                    q_i = perm[p]
+                    q = p
+
+
+def _mutual_reachability_mst_reference(x: np.ndarray, core: np.ndarray) -> np.ndarray:
+    """:func:`_mutual_reachability_mst` by a plain Prim over the dense mutual-reachability matrix (numpy;
+    the twin of :func:`_prim`: the same distances, dimensions summed in order, ties to the lowest index)."""
+    x = np.asarray(x, np.float64)
+    core = np.asarray(core, np.float64)
+    s = x.shape[0]
+    edges = np.empty((max(s - 1, 0), 3))
+    if s < 2:
+        return edges
+    d2 = np.zeros((s, s))
+    for c in range(x.shape[1]):  # in order of the dimensions, as the kernel adds them
+        t = x[:, None, c] - x[None, :, c]
+        d2 += t * t
+    reach = np.maximum(np.maximum(np.sqrt(d2), core[:, None]), core[None, :])
+    in_tree = np.zeros(s, bool)
     in_tree[0] = True
+    best = reach[0].copy()
+    source = np.zeros(s, np.int64)
     for e in range(s - 1):
-        nxt = -1
-        nxt_d = np.inf
-        for j in range(s):
-            if in_tree[j]:
-                continue
-            d2 = 0.0
-            for c in range(dim):
-                t = x[j, c] - x[current, c]
-                d2 += t * t
-            d = max(np.sqrt(d2), core[j], core[current])
-            if d < best[j]:
-                best[j] = d
-                source[j] = current
-            if best[j] < nxt_d:
-                nxt_d = best[j]
-                nxt = j
-        edges[e, 0] = source[nxt]
-        edges[e, 1] = nxt
-        edges[e, 2] = nxt_d
+        cand = np.where(in_tree, np.inf, best)
+        nxt = int(np.argmin(cand))  # the first of the least: the lowest index
+        edges[e] = (source[nxt], nxt, best[nxt])
         in_tree[nxt] = True
-        current = nxt
+        closer = ~in_tree & (reach[nxt] < best)
+        best[closer] = reach[nxt][closer]
+        source[closer] = nxt
+    return edges
 
 
 def _single_linkage(edges: np.ndarray, s: int) -> np.ndarray:
