@@ -4,7 +4,7 @@ numba's kernels need) and numba's compile cache in the checkout, so that only th
 clone compiles.  Both must be set before torch and numba are imported, which happens when pytest
 imports the test modules, after this file.  An explicit value in the environment is respected.
 
-`make test` runs the suite on three pytest-xdist workers on 2 cores (``-n 3 --dist loadgroup``): each worker is a
+`make test` runs the suite on two pytest-xdist workers (``-n 2 --dist loadgroup``): each worker is a
 process of its own that runs this file, with its own temporary folders (``tmp_path``); they share the
 numba cache, which ``python -m trace3d.tooling.warm`` fills before pytest starts, so that the workers only
 load kernels (two processes that save different specializations of one kernel at once can leave
@@ -14,9 +14,8 @@ a whole DAG through Snakemake (each with
 "whole_dag": one worker runs them one after another while the other runs the rest, so no two of them
 compete for the cores and run into their time limits.  The SLURM test (group "slurm") runs the same
 room through the cluster, whose jobs run on the node's 2 CPUs while the test's process mostly waits on
-the executor's status polls (2-22 s apart): it starts on a worker of its own, beside the whole-DAG group,
-instead of adding its waits to that worker's queue, and the third worker runs the rest meanwhile, filling the
-core the SLURM test leaves idle (Makefile, ``TEST_WORKERS``).
+the executor's status polls (2-22 s apart): it starts on the other worker, beside the whole-DAG group,
+instead of adding its waits to that worker's queue.
 
 Subprocesses that compute (a whole DAG, a fit, a cold compile) run without a time limit of their own:
 their wall time on a loaded 2-core machine is several times that on a quiet one (a fresh-clone run
@@ -101,7 +100,7 @@ def pytest_collection_modifyitems(config, items):
         items.sort(key=_group_rank)
 
 
-GROUP_ORDER = ("whole_dag", "slurm")  # the scheduler's first unit goes to the first worker, the second to the next
+GROUP_ORDER = ("whole_dag", "slurm")  # the scheduler's first unit goes to the first worker, the second to the other
 
 
 def _group_rank(item) -> int:
