@@ -50,13 +50,11 @@ fern: $(STAMP)
 	$(BIN)/snakemake --cores $(CORES) --show-failed-logs --configfile=config/fern.yaml --config data_root=$(FERN_ROOT) -- reproduce
 
 # The kernels are compiled first, over $(CORES) processes (trace3d/tooling/warm.py), so that no test compiles one;
-# then the suite runs on $(CORES) + 1 pytest-xdist workers: the whole-DAG runs take turns on the first, the SLURM
-# test (mostly waiting on its executor's status polls) has the second, and the last, at a lower CPU priority
-# (nice 10), runs short tests on what those leave idle (their xdist_groups; tests/conftest.py).
-TEST_WORKERS ?= $(shell echo $$(( $(CORES) + 1 )))
+# then the suite runs on $(CORES) pytest-xdist workers, the whole-DAG runs taking turns on one of them
+# (their xdist_group; tests/conftest.py).
 test: $(STAMP)
 	$(BIN)/python -m trace3d.tooling.warm --jobs $(CORES)
-	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadgroup --durations=20 tests
+	$(BIN)/python -m pytest -q -n $(CORES) --dist loadgroup --durations=20 tests
 
 # ruff (its rules in pyproject.toml's [tool.ruff]) over the Python, then Snakemake's own lint of the rules
 lint: $(STAMP)

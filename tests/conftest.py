@@ -4,7 +4,7 @@ numba's kernels need) and numba's compile cache in the checkout, so that only th
 clone compiles.  Both must be set before torch and numba are imported, which happens when pytest
 imports the test modules, after this file.  An explicit value in the environment is respected.
 
-`make test` runs the suite on three pytest-xdist workers on 2 cores (``-n 3 --dist loadgroup``): each worker is a
+`make test` runs the suite on two pytest-xdist workers (``-n 2 --dist loadgroup``): each worker is a
 process of its own that runs this file, with its own temporary folders (``tmp_path``); they share the
 numba cache, which ``python -m trace3d.tooling.warm`` fills before pytest starts, so that the workers only
 load kernels (two processes that save different specializations of one kernel at once can leave
@@ -14,10 +14,8 @@ a whole DAG through Snakemake (each with
 "whole_dag": one worker runs them one after another while the other runs the rest, so no two of them
 compete for the cores and run into their time limits.  The SLURM test (group "slurm") runs the same
 room through the cluster, whose jobs run on the node's 2 CPUs while the test's process mostly waits on
-the executor's status polls (2-22 s apart): it starts on the second worker, beside the whole-DAG group,
-instead of adding its waits to that worker's queue. The last worker, one more than the cores, runs short
-tests from the start at nice 10 (:data:`FILLER`): it takes the CPU those two leave idle without slowing
-the cluster's jobs (as an equal third worker did: they were the suite's longest path, 376 s instead of 274).
+the executor's status polls (2-22 s apart): it starts on the other worker, beside the whole-DAG group,
+instead of adding its waits to that worker's queue.
 
 Subprocesses that compute (a whole DAG, a fit, a cold compile) run without a time limit of their own:
 their wall time on a loaded 2-core machine is several times that on a quiet one (a fresh-clone run
@@ -81,23 +79,6 @@ if _slurm_controller_down():
     os.environ["PATH"] = f"{_stub}{os.pathsep}{os.environ.get('PATH', '')}"
 
 
-def _filler_worker() -> bool:
-    """Whether this is the xdist worker beyond the cores (the last of ``cores + 1``), which gets no
-    group: the scheduler hands the whole-DAG group to the first worker and the SLURM test to the second
-    (:func:`pytest_collection_modifyitems` puts them first), and the others short tests."""
-    worker, count = os.environ.get("PYTEST_XDIST_WORKER", ""), os.environ.get("PYTEST_XDIST_WORKER_COUNT", "")
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        cores = os.cpu_count() or 1
-    return count.isdigit() and int(count) > cores and worker == f"gw{int(count) - 1}"
-
-
-FILLER = _filler_worker()
-if FILLER:
-    os.nice(10)  # its subprocesses inherit it
-
-
 @pytest.fixture
 def single_numba_thread():
     """Run a test's numba kernels on one thread (restored afterwards)."""
@@ -119,7 +100,7 @@ def pytest_collection_modifyitems(config, items):
         items.sort(key=_group_rank)
 
 
-GROUP_ORDER = ("whole_dag", "slurm")  # the scheduler's first unit goes to the first worker, the second to the next
+GROUP_ORDER = ("whole_dag", "slurm")  # the scheduler's first unit goes to the first worker, the second to the other
 
 
 def _group_rank(item) -> int:
