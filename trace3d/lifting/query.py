@@ -43,8 +43,7 @@ from ..gaussians import GaussianModel
 from ..scene import Camera, Scene
 from . import ObjectQuery
 from .kernels.query import (_add_masked_rows, _kernel_applies, _query_distances, _query_mask, _query_mask_objects,
-                            object_balls,
-                            _query_mask_stack)
+                            _query_mask_stack, object_balls)
 
 log = logging.getLogger(__name__)
 
