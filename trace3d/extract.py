@@ -342,8 +342,9 @@ class ClickScene:
         bits (tests/objects/test_segclick.py)."""
         from .segment import bottleneck_distances
 
-        f = self.shared.seen_features
-        d = np.sqrt(((f - np.asarray(query, np.float64)[None, :]) ** 2).sum(1))
+        from .lifting.kernels.query import row_distances
+
+        d = row_distances(self.shared.seen_features, np.asarray(query, np.float64))
         indptr, neighbours = self.shared.neighbour_lists()
         return bottleneck_distances(d, indptr, neighbours, seeds, limit)
 

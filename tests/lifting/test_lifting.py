@@ -497,6 +497,21 @@ def test_query_kernels_give_numpys_distances_and_masks_to_the_bit(d):
                 assert np.array_equal(one.mask(fmap), want[k] <= one.thresholds[0])
 
 
+@pytest.mark.parametrize("d", [3, 8, 13, 16, 24, 128, 129])
+def test_row_distances_give_numpys_float64_values_to_the_bit(d):
+    """The click's distances of every seen Gaussian's feature to the query (float64): the kernel against
+    numpy's expression, bit for bit (numpy's pairwise order over D; below 8 and above 128 numpy itself)."""
+    from trace3d.lifting.kernels.query import row_distances
+
+    rng = np.random.default_rng(d)
+    f = rng.standard_normal((1000, d)) * 3.0
+    q = f[17] + rng.standard_normal(d) * 1e-3
+    got = row_distances(f, q)
+    want = np.sqrt(((f - q[None, :]) ** 2).sum(1))
+    assert got.dtype == np.float64 and got.tobytes() == want.tobytes()
+    assert row_distances(f[:, :0], np.zeros(0)).shape == (1000,)
+
+
 @pytest.mark.parametrize("d", [4, 8, 16, 21])
 def test_object_masks_kernel_with_its_bounding_balls_equals_the_numpy_masks(d):
     """The evaluation's masks of several objects at one view (:func:`_query_mask_objects`, which refuses a

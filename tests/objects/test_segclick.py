@@ -373,9 +373,11 @@ def test_hdbscan_clusters_split_into_their_pieces_in_3d():
 
 
 def test_click_weights_are_the_full_views_rows():
-    """The 3x3 pixels' weights traced alone equal those rows of the full view's weights (the twin)."""
+    """The 3x3 pixels' weights traced alone equal those rows of the full view's weights (the twin), and
+    their seeds and summed weights equal, bit for bit, those read from the view's blend-order weights
+    (what the evaluation's click score reads when the lifted scene keeps the view's)."""
     from trace3d.extract import click_seeds, click_weights
-    from trace3d.render.pixel_weights import pixel_weights
+    from trace3d.render.pixel_weights import pixel_weights, pixel_weights_blend_order
     from trace3d.scene import Camera
     import torch
 
@@ -388,9 +390,12 @@ def test_click_weights_are_the_full_views_rows():
                     K=np.array([[20.0, 0, 12], [0, 20.0, 9], [0, 0, 1]]), world_to_camera=np.eye(4))
     with torch.no_grad():
         full = pixel_weights(model.splats(), camera)
-    for x, y in ((12, 9), (0, 0), (23, 17)):
+        blend = pixel_weights_blend_order(model.splats(), camera)
+    for x, y in ((12, 9), (0, 0), (23, 17), (5, 11)):
         a = click_seeds(full, x, y)
         b = click_seeds(click_weights(model, camera, x, y), x, y)
+        c = click_seeds(blend, x, y)
         np.testing.assert_array_equal(a[0], b[0])
         np.testing.assert_allclose(a[1], b[1], rtol=1e-6)
-    assert a[0].size > 0
+        assert c[0].tobytes() == b[0].tobytes() and c[1].tobytes() == b[1].tobytes(), (x, y)
+    assert a[0].size > 0 and c[0].size > 3

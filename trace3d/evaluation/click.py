@@ -77,7 +77,11 @@ def evaluate_clicks(lifted, gt, by_name: dict, params, min_pixels: int, near: fl
             keep = _select_region(lifted, model, camera, lifted.feature_map(camera), x, y,
                                   dataclasses.replace(params, view=query.reference))[0]
         else:
-            seeds, weights = click_seeds(click_weights(model, camera, x, y, near=near), x, y)
+            # the clicked view's weights when the lifted scene keeps them (the reference views': the pass
+            # made them for the query points), else the 3x3 pixels' traced alone: the same seeds and sums
+            full = kept.get(camera.name) if kept is not None else None
+            seeds, weights = click_seeds(full if full is not None else click_weights(model, camera, x, y, near=near),
+                                         x, y)
             keep = click.select(lifted.feature_map(camera)[y, x], seeds, weights)
         scores = [iou(mask_of(by_name[f], keep), gt.mask(oid, f)) for f in views]
         objects.append({"id": oid, "reference": query.reference, "point": [int(x), int(y)],

@@ -217,6 +217,30 @@ def object_balls(feats: np.ndarray, thresholds: np.ndarray, starts: np.ndarray) 
     return centres, radii
 
 
+@njit(parallel=True, cache=True)
+def _row_distances(rows, query, out):
+    """out[s] = |rows[s, 0] - query[0]| for ``rows`` [S, 1, D] and ``query`` [1, D] (float64): the float64
+    version of :func:`_query_distances`, numpy's values to the bit (:func:`row_distances`)."""
+    for s in prange(rows.shape[0]):
+        out[s] = np.sqrt(_squared_distance(rows, s, 0, query, 0))
+
+
+def row_distances(features: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """[S] float64: ``np.sqrt(((features - query) ** 2).sum(1))`` for ``features`` [S, D] and ``query`` [D]
+    (float64; numpy's pairwise sum over D), by :func:`_row_distances` without numpy's two [S, D]
+    temporaries when D is 8..128 and both are float64 (a click scores 80k Gaussians); else numpy itself
+    (the twin)."""
+    features = np.asarray(features)
+    query = np.asarray(query, np.float64)
+    d = features.shape[1] if features.ndim == 2 else 0
+    if features.dtype == np.float64 and features.flags.c_contiguous and 8 <= d <= _PAIRWISE_BLOCK \
+            and query.shape == (d,):
+        out = np.empty(features.shape[0], np.float64)
+        _row_distances(features.reshape(features.shape[0], 1, d), np.ascontiguousarray(query.reshape(1, d)), out)
+        return out
+    return np.sqrt(((features - query[None, :]) ** 2).sum(1))
+
+
 @njit(cache=True)
 def _add_masked_rows(inside, pixels, indptr, indices, weights, fg, view, touched, order):
     """fg += the per-Gaussian sums over the rows whose pixel is ``inside`` (``view``, ``touched`` and
