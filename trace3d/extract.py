@@ -340,9 +340,8 @@ class ClickScene:
         """:func:`click_distances` of the seen Gaussians (``seeds``: positions in ``seen``) over the scene's
         graph, by :func:`~trace3d.segment.bottleneck_distances` on its neighbour lists (made once): the same
         bits (tests/objects/test_segclick.py)."""
-        from .segment import bottleneck_distances
-
         from .lifting.kernels.query import row_distances
+        from .segment import bottleneck_distances
 
         d = row_distances(self.shared.seen_features, np.asarray(query, np.float64))
         indptr, neighbours = self.shared.neighbour_lists()

@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 from typing import Sequence
 
+import cv2
 import numpy as np
 
 from ..gaussians import GaussianModel
@@ -95,12 +96,10 @@ def write_turntable(path: Path, model: GaussianModel, up: np.ndarray, views: int
 
 
 PANEL_HEIGHT = 240  # pixels of one picture panel (images are scaled by whole factors, nearest neighbour)
-_FONT = 0  # cv2.FONT_HERSHEY_SIMPLEX
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
 
 
 def _text_width(text: str, scale: float) -> int:
-    import cv2
-
     return cv2.getTextSize(text, _FONT, scale, 1)[0][0]
 
 
@@ -114,8 +113,6 @@ def _fit_text(text: str, width: int, scale: float) -> str:
 
 
 def _put(canvas: np.ndarray, text: str, x: int, baseline: int, width: int, scale: float) -> None:
-    import cv2
-
     if text:
         cv2.putText(canvas, _fit_text(text, width, scale), (x, baseline), _FONT, scale, (0, 0, 0), 1, cv2.LINE_AA)
 
