@@ -210,6 +210,15 @@ def _cmd_bench(args: argparse.Namespace) -> None:
         from .bench.merge_vote import run_bench
 
         result = run_bench([Path(r) for r in (args.room_list or [args.room])])
+    elif args.name == "mask-cues":
+        from .bench.mask_cues import plot_cues, run_bench
+
+        rooms = [Path(r) for r in (args.room_list or [args.room])]
+        results = [run_bench(room, masks=[room.parent / m.format(room=room.name) for m in (args.masks or [])],
+                             stride=args.stride) for room in rooms]
+        if args.plot:
+            plot_cues(results, Path(args.plot))
+        result = results[0] if len(results) == 1 else {"rooms": results}
     elif args.name == "lift-forms":
         from .bench.lift import compare_forms
 
@@ -268,7 +277,7 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="benchmarks; print one JSON object")
     p.add_argument("name", choices=["render", "synthetic", "trace", "lift", "lift-forms", "fit", "fit-sweep",
-                                    "prompts", "evaluate", "startup", "merge-vote", "scheduler"])
+                                    "prompts", "evaluate", "startup", "merge-vote", "scheduler", "mask-cues"])
     p.add_argument("--room", default="results/room0",
                    help="trace, lift: a fitted room's results folder (scene/, poses/, gaussians/, patches/ or "
                         "merge-paper/instances); prompts: a room's results folder or canonical scene with ground "
@@ -290,14 +299,19 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
                         "compile kernels); startup: fresh processes per step (the median is reported)")
     p.add_argument("--rooms", dest="room_list", nargs="+",
                    help="fit-sweep: rooms' results folders (scene/, poses/); merge-vote: traced synthetic rooms' "
-                        "results folders (scene/, patches/, trace-paper/), figures per room and pooled")
+                        "results folders (scene/, patches/, trace-paper/), figures per room and pooled; mask-cues: "
+                        "fitted rooms with ground truth")
     p.add_argument("--budgets", nargs="+", default=["20000", "40000", "80000"],
                    help="fit-sweep: Gaussian budgets (max_gaussians)")
     p.add_argument("--scales", nargs="+", default=["0.05", "0.1"],
                    help="fit-sweep: schedule scales (0.1 = 3,000 iterations)")
     p.add_argument("--merge", nargs="+", metavar="JSON",
                    help="fit-sweep: no fitting; merge these earlier sweeps' --out files (rows in order) and plot them")
-    p.add_argument("--plot", help="fit-sweep: PNG of test PSNR against minutes")
+    p.add_argument("--plot", help="fit-sweep: PNG of test PSNR against minutes; mask-cues: PNG of the cues' AUCs")
+    p.add_argument("--masks", action="append", metavar="FOLDER",
+                   help="mask-cues: a masks folder to score, relative to the room's parent, {room} standing for the "
+                        "room's name (repeatable; e.g. '{room}/masks' '{room}@geometry/masks')")
+    p.add_argument("--stride", type=int, default=4, help="mask-cues: every stride-th view (default 4)")
     p.add_argument("--out", help="also write the JSON here")
     p.set_defaults(func=_cmd_bench)
 
