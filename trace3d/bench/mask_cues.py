@@ -66,7 +66,7 @@ def classify_pairs(leaf: np.ndarray, obj: np.ndarray, evaluated: np.ndarray) -> 
         size = leaf.shape[axis]
         lo, hi = np.arange(size - 1), np.arange(1, size)
 
-        def take(a, i):
+        def take(a, i, axis=axis):
             return np.take(a, i, axis=axis)
 
         la, lb, oa, ob = take(leaf, lo), take(leaf, hi), take(obj, lo), take(obj, hi)
