@@ -11,10 +11,14 @@ from trace3d.errors import SceneFormatError
 from trace3d.masks import run_masks
 from trace3d.masks.patches import (
     PatchHierarchy,
+    PatchParams,
     _masks_to_patches_reference,
+    _nesting_depth_reference,
     masks_to_patches,
+    nesting_depth,
     read_patches,
     run_patches,
+    select_masks,
 )
 
 from tests.masks.test_masks import H, W, make_scene
@@ -221,7 +225,51 @@ class TestHierarchy:
             read_patches(tmp_path, "v0")
 
 
+class TestNestingDepth:
+    def test_a_known_tree(self):
+        # a room (0) holding a table (1) holding a cup (2) and a plate (3); a picture (4) beside the table;
+        # a copy of the cup (5): equal masks, the later one inside the earlier
+        m = np.zeros((6, 8, 10), bool)
+        m[0] = True
+        m[1, 2:8, 0:6] = True
+        m[2, 3:5, 1:3] = True
+        m[3, 5:7, 3:5] = True
+        m[4, 0:2, 7:10] = True
+        m[5] = m[2]
+        assert nesting_depth(m).tolist() == [0, 1, 2, 2, 1, 3]
+        kept, scores = select_masks(m, np.arange(6, dtype=np.float32), PatchParams(max_depth=1))
+        assert np.array_equal(kept, m[[0, 1, 4]]) and scores.tolist() == [0, 1, 4]
+        assert select_masks(m, np.ones(6, np.float32), PatchParams())[0] is m  # None: every mask
+
+    def test_matches_the_loop_twin_on_random_and_overlapping_masks(self):
+        rng = np.random.default_rng(7)
+        for M in (1, 3, 9, 17):
+            masks = _random_masks(rng, M, 9, 11)
+            masks[-1] = masks[0]  # an exact duplicate
+            np.testing.assert_array_equal(nesting_depth(masks), _nesting_depth_reference(masks))
+
+    def test_max_depth_is_checked(self):
+        with pytest.raises(ValueError, match="max_depth"):
+            PatchParams(max_depth=-1)
+
+
 class TestRunPatches:
+    def test_max_depth_patches_are_the_coarse_masks_overlap(self, tmp_path):
+        scene = make_scene(tmp_path / "s", views=2)
+        run_masks(scene, tmp_path / "masks", "simulated", {"inconsistency": 1.0, "seed": 2})
+        run_patches(scene, tmp_path / "masks", tmp_path / "all", {"preview_views": 0})
+        run_patches(scene, tmp_path / "masks", tmp_path / "top", {"preview_views": 0, "max_depth": 0})
+        coarser = 0
+        for cam in scene.cameras:
+            masks = np.load(tmp_path / "masks" / f"{cam.name}.npz")["masks"]
+            top = masks[nesting_depth(masks) == 0]
+            expected, _ = masks_to_patches(top, PatchParams.min_patch_pixels, min_patch_width=3)
+            got, hier = read_patches(tmp_path / "top", cam.name)
+            np.testing.assert_array_equal(got, expected)
+            assert hier.num_masks == len(top)
+            coarser += int(got.max()) < int(read_patches(tmp_path / "all", cam.name)[0].max())
+        assert coarser >= 1  # the simulated masks nest: dropping the inner ones leaves fewer patches
+
     def test_step_outputs(self, tmp_path):
         scene = make_scene(tmp_path / "s", views=4)
         run_masks(scene, tmp_path / "masks", "simulated", {"inconsistency": 1.0, "seed": 2})

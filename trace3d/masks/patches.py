@@ -68,15 +68,20 @@ class PatchParams:
         split_disconnected: make every connected piece its own patch instead of one patch per
             distinct mask combination.
         preview_views: number of views shown in ``preview.png`` (0: no preview).
+        max_depth: only the masks nested at most this deep are overlapped (:func:`nesting_depth`: 0 = the
+            masks no other mask of the view contains, 1 = those directly inside one of them, ...); ``None``
+            (default): every mask. 1 gives coarser patches from a deep hierarchy (the ``geometry``
+            source's: docs/masks.md).
     """
 
     min_patch_pixels: int = 20
     min_patch_width: int = 3
     split_disconnected: bool = False
     preview_views: int = 4
+    max_depth: int | None = None
 
     # each field's range: refused on input and in the config schema (trace3d.params.check_ranges)
-    RANGES = {"min_patch_pixels": ">= 0", "min_patch_width": ">= 0", "preview_views": ">= 0"}
+    RANGES = {"min_patch_pixels": ">= 0", "min_patch_width": ">= 0", "preview_views": ">= 0", "max_depth": ">= 0"}
 
     def __post_init__(self) -> None:
         if self.min_patch_pixels < 0:
@@ -85,6 +90,47 @@ class PatchParams:
             raise ValueError(f"min_patch_width must be >= 0, got {self.min_patch_width}")
         if self.preview_views < 0:
             raise ValueError(f"preview_views must be >= 0, got {self.preview_views}")
+        if self.max_depth is not None and self.max_depth < 0:
+            raise ValueError(f"max_depth must be >= 0 or null, got {self.max_depth}")
+
+
+def nesting_depth(masks: np.ndarray) -> np.ndarray:
+    """[M] int: how many other masks of the view contain each mask (a mask contains another when it covers
+    all its pixels and is larger, or equal with a lower index: of two equal masks the later is inside the
+    earlier). In a nested mask set (any two disjoint or nested) this is the mask's depth in the nesting
+    tree; overlapping masks that do not contain each other do not count."""
+    from .nested import pairwise_intersections
+
+    masks = np.asarray(masks, dtype=bool)
+    M = len(masks)
+    inter = pairwise_intersections(masks)  # [M, M] shared pixels, areas on the diagonal
+    area = np.diag(inter)
+    index = np.arange(M)
+    # contains[i, j]: mask i contains mask j
+    contains = (inter >= area[None, :]) & ((area[:, None] > area[None, :]) |
+                                           ((area[:, None] == area[None, :]) & (index[:, None] < index[None, :])))
+    return contains.sum(axis=0).astype(np.int64)
+
+
+def _nesting_depth_reference(masks: np.ndarray) -> np.ndarray:
+    """Loop twin of :func:`nesting_depth` (pixel sets compared pair by pair; used by the tests)."""
+    sets = [frozenset(zip(*np.nonzero(m))) for m in masks]
+    depth = []
+    for j, inner in enumerate(sets):
+        count = 0
+        for i, outer in enumerate(sets):
+            if i != j and inner <= outer and (len(outer) > len(inner) or i < j):
+                count += 1
+        depth.append(count)
+    return np.array(depth, dtype=np.int64)
+
+
+def select_masks(masks: np.ndarray, scores: np.ndarray, params: PatchParams) -> tuple[np.ndarray, np.ndarray]:
+    """The masks (and scores) the patches are made of: those at most ``params.max_depth`` deep."""
+    if params.max_depth is None or len(masks) == 0:
+        return masks, scores
+    keep = nesting_depth(masks) <= params.max_depth
+    return masks[keep], scores[keep]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -514,6 +560,7 @@ def run_patches(scene: Scene, masks_dir: Path, out_dir: Path, params: dict) -> N
     per_view: dict[str, dict] = {}
     for cam in tqdm(scene.cameras, desc="patches", unit="view"):
         masks, scores = read_mask_npz(masks_dir / f"{cam.name}.npz", cam.height, cam.width)
+        masks, scores = select_masks(masks, scores, p)
         patch_map, hierarchy = masks_to_patches(
             masks,
             p.min_patch_pixels,

@@ -33,7 +33,7 @@ from ..errors import SceneFormatError
 from ..scene import ObjectTable, Scene
 from .files import read_mask_npz
 from .nested import pairwise_intersections
-from .patches import PatchParams, masks_to_patches
+from .patches import PatchParams, masks_to_patches, select_masks
 
 log = logging.getLogger(__name__)
 
@@ -107,7 +107,8 @@ def view_statistics(
         out["enclosed_fine"] = float(has_parent[finest].mean()) if finest.any() else 0.0
     else:
         out["nested"] = out["enclosed_fine"] = 0.0
-    patch_map, hierarchy = masks_to_patches(masks, p.min_patch_pixels, min_patch_width=p.min_patch_width,
+    selected, _ = select_masks(masks, np.ones(len(masks), np.float32), p)
+    patch_map, hierarchy = masks_to_patches(selected, p.min_patch_pixels, min_patch_width=p.min_patch_width,
                                             split_disconnected=p.split_disconnected)
     out["patches"] = float(hierarchy.num_patches)
     if instance_map is not None:
