@@ -154,6 +154,8 @@ def scene_config(scene):
     if scene in DERIVED:
         base, masks = DERIVED[scene]
         extra = {"masks": masks}
+        if scene in MODEL_PATCHES:  # a mask model's own patch settings
+            extra["patches"] = MODEL_PATCHES[scene]
         if scene in FITTED:  # a fit seed: the room's own settings with the fit's seed
             extra["gaussians"] = {"seed": FITTED[scene]}
         return deep_merge(config["scenes"][base], extra)
@@ -203,19 +205,25 @@ for _base in ROBUSTNESS.get("scenes", []):
 
 
 # --- mask models and the oracle: the same rooms under other 2D masks ----------------------------
-# `mask_models: {<model>: {masks: {...}, variants: [...]}}` adds, for every scene with ground truth,
-# a derived scene `<room>@<model>` whose masks settings are `masks` merged over the room's own (its
-# scene, poses and 2DGS fit are the room's), and runs `variants` on it.  `oracle: {variants: [...]}`
+# `mask_models: {<model>: {masks: {...}, patches: {...}, variants: [...]}}` adds, for every scene with
+# ground truth, a derived scene `<room>@<model>` whose masks settings are `masks` merged over the room's
+# own, and whose patch settings `patches` (optional) over the room's (its scene, poses and 2DGS fit are
+# the room's), and runs `variants` on it.  `oracle: {variants: [...]}`
 # runs those variants on exact object masks: the room at simulated inconsistency 0 (`<room>@inc0`,
 # shared with the robustness curve), the upper end of every "share of the raw-to-oracle gap" figure.
 MASK_MODELS = config.get("mask_models") or {}
 ORACLE = config.get("oracle") or {}
 
 
+MODEL_PATCHES = {}  # derived scene -> a mask model's own patch settings
+
+
 for _model, _spec in MASK_MODELS.items():
     for _base in SCENES:
         if config["scenes"][_base]["kind"] in EVAL_KINDS:
             DERIVED[f"{_base}@{_model}"] = (_base, _spec.get("masks") or {})
+            if _spec.get("patches"):
+                MODEL_PATCHES[f"{_base}@{_model}"] = _spec["patches"]
 
 
 def oracle_scene(base):

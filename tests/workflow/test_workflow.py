@@ -292,7 +292,8 @@ def test_robustness_needs_simulated_masks(tmp_path):
 def _study_config():
     return {"scenes": {"a": {"kind": "synthetic"}, "b": {"kind": "synthetic"}},
             "variants": {**GRID, "sp": {"lifting": "self_prompt", "lift": {"points": 5}}},
-            "mask_models": {"hi": {"masks": {"simulated": {"inconsistency": 1.0}}, "variants": ["full", "both_off"]}},
+            "mask_models": {"hi": {"masks": {"simulated": {"inconsistency": 1.0}}, "variants": ["full", "both_off"]},
+                            "top": {"masks": {}, "patches": {"max_depth": 0}, "variants": ["both_off"]}},
             "oracle": {"variants": ["both_off"]},
             "seeds": {"values": [0, 2], "variants": ["full", "both_off"]}}
 
@@ -311,11 +312,16 @@ def test_mask_models_oracle_and_seeds_share_the_rooms_fit(tmp_path):
     for step in ("scene", "poses", "gaussians"):
         assert sorted(outs[step]) == [f"results/a/{step}", f"results/b/{step}"], outs[step]
     assert sorted(outs["masks"]) == ["results/a/masks", "results/a@hi/masks", "results/a@inc0/masks",
-                                     "results/b/masks", "results/b@hi/masks", "results/b@inc0/masks"]
+                                     "results/a@top/masks", "results/b/masks", "results/b@hi/masks",
+                                     "results/b@inc0/masks", "results/b@top/masks"]
+    # a mask model's own patch settings reach its patches step, and only its
+    patches = {line.split("--out ")[1].split()[0]: line for line in shells if " patches --scene" in line}
+    assert '"max_depth": 0' in patches["results/a@top/patches"]
+    assert all('"max_depth"' not in line for out, line in patches.items() if "@top" not in out)
     lifts = {line.split("--out ")[1].split()[0]: line for line in shells if " lift --scene" in line}
     assert sorted(k for k in lifts if "@" in k) == sorted(
         [f"results/{r}@hi/{v}/lift" for r in "ab" for v in ("full", "full.s2", "both_off", "both_off.s2")]
-        + [f"results/{r}@inc0/{v}/lift" for r in "ab" for v in ("both_off", "both_off.s2")])
+        + [f"results/{r}@{m}/{v}/lift" for r in "ab" for m in ("inc0", "top") for v in ("both_off", "both_off.s2")])
     assert '"seed": 2' in lifts["results/a@hi/full.s2/lift"] and '"seed"' not in lifts["results/a@hi/full/lift"]
     assert "--gaussians results/a@hi/refine-paper-merged " in lifts["results/a@hi/full.s2/lift"]
     assert "--gaussians results/a/gaussians " in lifts["results/a@inc0/both_off/lift"]
