@@ -104,6 +104,30 @@ def test_toy_scene_box_floor_and_wall_come_apart_by_geometry_alone():
     assert len(graph_view_masks(image, GraphParams())[0]) == 0
 
 
+def test_finest_level_leaves_the_finest_regions_out():
+    """finest_level 1: the masks are the coarser levels' regions only, each one of the full set's masks."""
+    depth, normal, part = toy_view()
+    rng = np.random.default_rng(0)
+    image = np.clip(128 + rng.normal(0, 25, (H, W, 1)) * np.ones((1, 1, 3)), 0, 255).astype(np.uint8)  # speckle
+    alpha = np.ones((H, W))
+    full, _ = geometry_view_masks(image, depth, normal, alpha, K, GeometryParams())
+    coarse, _ = geometry_view_masks(image, depth, normal, alpha, K, GeometryParams(finest_level=1))
+    hierarchy, _ = geometry_hierarchy(image, depth, normal, alpha, K, GeometryParams())
+    assert 0 < len(coarse) < len(full)
+    flat = full.reshape(len(full), -1)
+    for mask in coarse:  # every coarse mask is one of the full set's
+        assert (flat == mask.ravel()).all(axis=1).any()
+    # the finest level's own regions (those equal to no coarser level's region) are gone
+    finest_only = [r for r in np.unique(hierarchy[0])
+                   if not any(((hierarchy[k] == np.bincount(hierarchy[k][hierarchy[0] == r]).argmax())
+                               == (hierarchy[0] == r)).all() for k in range(1, len(hierarchy)))]
+    assert finest_only
+    for r in finest_only:
+        assert not (coarse.reshape(len(coarse), -1) == (hierarchy[0] == r).ravel()).all(axis=1).any()
+    with pytest.raises(ValueError, match="finest_level"):
+        GeometryParams(finest_level=3)
+
+
 def test_pixel_cues_match_the_loop_twin_and_read_planes_steps_and_creases():
     depth, normal, part = toy_view()
     rng = np.random.default_rng(0)

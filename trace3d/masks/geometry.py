@@ -95,6 +95,8 @@ class GeometryParams:
             (a crease blurred over a few pixels still shows its full angle).
         near: near plane of the renders (camera z).
         reference_pixels: the image size (pixels) at which ``superpixel_scale`` and ``sigma`` apply.
+        finest_level: masks are emitted from this level of the hierarchy up (0: every level; 1: the finest
+            level's regions are left out, so that the patches are the next level's regions).
     """
 
     thresholds: list[float] = dataclasses.field(default_factory=lambda: [2.0, 4.0, 8.0])
@@ -124,9 +126,13 @@ class GeometryParams:
     crease_reach: int = 2
     near: float = 0.01
     reference_pixels: int = REFERENCE_PIXELS
+    finest_level: int = 0
 
     def __post_init__(self) -> None:
         self.thresholds = [float(t) for t in self.thresholds]
+        if not 0 <= self.finest_level < len(self.thresholds):
+            raise ValueError(f"finest_level must be in [0, {len(self.thresholds) - 1}] (a level of the "
+                             f"{len(self.thresholds)} thresholds), got {self.finest_level}")
         if len(self.thresholds) < 3:
             raise ValueError(f"thresholds needs at least 3 values (finest first), got {self.thresholds}")
         if any(t <= 0 for t in self.thresholds) or any(b <= a for a, b in zip(self.thresholds, self.thresholds[1:])):
@@ -651,7 +657,7 @@ def geometry_view_masks(image: np.ndarray, depth: np.ndarray, normal: np.ndarray
     """One view's masks [M, H, W] bool and scores [M] float32 (all 1); see :func:`geometry_hierarchy`."""
     hierarchy, empty = geometry_hierarchy(image, depth, normal, alpha, K, params, seed)
     H, W = depth.shape
-    masks, _ = nested_masks(hierarchy, max(1, int(np.ceil(params.min_area * H * W))),
+    masks, _ = nested_masks(hierarchy[params.finest_level:], max(1, int(np.ceil(params.min_area * H * W))),
                             int(np.floor(params.max_area * H * W)), exclude=empty)
     return masks, np.ones(len(masks), np.float32)
 
