@@ -807,6 +807,54 @@ def test_lift_with_undecided_pairs_ignored(tiny_fitted, tmp_path, capsys):
     assert not (tmp_path / "merged").exists()
 
 
+def test_lift_with_a_coarse_block(tiny_fitted, tmp_path, capsys):
+    """``coarse_depth``: the features are the plain lift's block and, beside it, a lift with the same settings on
+    the patches regrouped by the masks at most that deep (bit for bit both); merged maps: one sentence."""
+    from trace3d.cli import main
+    from trace3d.masks.patches import PatchHierarchy, coarser_patches
+    from trace3d.scene import write_u16
+
+    root = tiny_fitted
+    labels, regrouped = tmp_path / "patches", tmp_path / "regrouped"
+    labels.mkdir()
+    regrouped.mkdir()
+    for png in sorted((root / "scene" / "instances").glob("*.png")):
+        (labels / png.name).write_bytes(png.read_bytes())
+        ids = read_u16(png, "instance map")
+        count = int(ids.max())
+        areas = np.bincount(ids.ravel(), minlength=count + 1)[1:]
+        # two coarse masks (0: the first half of the objects, 1: the rest) above one mask per object (2..)
+        half = (count + 1) // 2
+        h = PatchHierarchy([[0 if p <= half else 1, p + 1] for p in range(1, count + 1)], areas,
+                           np.r_[areas[:half].sum(), areas[half:].sum(), areas].astype(np.int64),
+                           np.ones(count + 2, np.float32), png.stem)
+        (labels / f"{png.stem}.json").write_text(json.dumps(h.to_json()))
+        coarse = coarser_patches(ids, h, 0)
+        assert set(np.unique(coarse)) <= {0, 1, 2} and (coarse > 0).sum() == (ids > 0).sum()
+        write_u16(regrouped / png.name, coarse.astype(np.uint16))
+    base = {"method": "contrastive", "preset": "paper", "iterations": 30, "pixels": 128, "pool_pixels": 256,
+            "pca_views": 1}
+    args = ["lift", "--scene", str(root / "scene"), "--poses", str(root / "poses"), "--gaussians",
+            str(root / "gaussians"), "--out"]
+    assert main(args + [str(tmp_path / "two"), "--labels", str(labels), "--params",
+                        json.dumps({**base, "coarse_depth": 0})]) == 0
+    assert main(args + [str(tmp_path / "fine"), "--labels", str(labels), "--params", json.dumps(base)]) == 0
+    assert main(args + [str(tmp_path / "coarse"), "--labels", str(regrouped), "--params", json.dumps(base)]) == 0
+    two = np.load(tmp_path / "two" / "features.npy")
+    assert two.shape[1] == 32
+    np.testing.assert_array_equal(two[:, :16], np.load(tmp_path / "fine" / "features.npy"))
+    np.testing.assert_array_equal(two[:, 16:], np.load(tmp_path / "coarse" / "features.npy"))
+    info = json.loads((tmp_path / "two" / "lift.json").read_text())
+    assert info["dim"] == 32 and info["coarse"]["depth"] == 0 and 1 <= info["coarse"]["labels_per_view"] <= 2
+    assert (tmp_path / "two" / "loss_coarse.csv").is_file()
+    capsys.readouterr()
+    assert main(args + [str(tmp_path / "merged"), "--labels", str(root / "scene" / "instances"), "--params",
+                        json.dumps({**base, "coarse_depth": 1})]) == 2
+    err = capsys.readouterr().err
+    assert "coarse_depth" in err and "hierarchy" in err and "Traceback" not in err
+    assert not (tmp_path / "merged").exists()
+
+
 def test_self_prompt_with_the_graph_prompt_source(tiny_fitted, tmp_path):
     """Self-prompting whose prompts are answered by the images' graph segmentation (no ground truth)."""
     from trace3d.cli import main

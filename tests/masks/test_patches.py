@@ -14,6 +14,7 @@ from trace3d.masks.patches import (
     PatchParams,
     _masks_to_patches_reference,
     _nesting_depth_reference,
+    coarser_patches,
     masks_to_patches,
     nesting_depth,
     read_patches,
@@ -247,6 +248,42 @@ class TestNestingDepth:
             masks = _random_masks(rng, M, 9, 11)
             masks[-1] = masks[0]  # an exact duplicate
             np.testing.assert_array_equal(nesting_depth(masks), _nesting_depth_reference(masks))
+
+    def test_coarser_patches_from_the_hierarchy_are_the_coarse_masks_patches(self):
+        """Regrouping the patches by the hierarchy's masks at most k deep gives the patches of those masks
+        themselves (no absorption on either side), for nested trees with duplicates and uncovered pixels."""
+        rng = np.random.default_rng(11)
+        for trial in range(12):
+            h, w = 12, 16
+            masks = []
+
+            def split(y0, y1, x0, x1, depth):
+                if depth > 3 or (y1 - y0) * (x1 - x0) < 4:
+                    return
+                m = np.zeros((h, w), bool)
+                m[y0:y1, x0:x1] = True
+                masks.append(m)
+                if rng.random() < 0.2:
+                    masks.append(m.copy())  # a duplicate mask
+                if rng.random() < 0.7:
+                    if (y1 - y0) >= (x1 - x0):
+                        cut = int(rng.integers(y0 + 1, y1))
+                        split(y0, cut, x0, x1, depth + 1)
+                        split(cut, y1, x0, x1, depth + 1)
+                    else:
+                        cut = int(rng.integers(x0 + 1, x1))
+                        split(y0, y1, x0, cut, depth + 1)
+                        split(y0, y1, cut, x1, depth + 1)
+
+            split(0, h, 0, w - 3, 0)  # the last three columns stay uncovered
+            order = rng.permutation(len(masks))
+            masks = np.stack(masks)[order]
+            patch_map, hierarchy = masks_to_patches(masks, 0)
+            for k in range(4):
+                expected, _ = masks_to_patches(masks[nesting_depth(masks) <= k], 0)
+                np.testing.assert_array_equal(coarser_patches(patch_map, hierarchy, k), expected.astype(np.int64))
+        deep = coarser_patches(patch_map, hierarchy, 99)
+        assert deep.max() == patch_map.max()
 
     def test_max_depth_is_checked(self):
         with pytest.raises(ValueError, match="max_depth"):

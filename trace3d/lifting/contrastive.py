@@ -27,6 +27,15 @@ Gaussians, decide them. Works on the raw patches (``consistent_masks: false``), 
 ``undecided_weight`` softens instead of leaving out: an undecided pair keeps that weight in the
 denominator (0: left out; 1: the paper's push).
 
+Two levels (``coarse_depth``, beyond the paper; docs/lifting.md). A view's masks nest (a table holds its
+top and legs, the room holds the table), and the patches are their finest overlap: trained on the patches
+alone, the parts of an object that the masks split are pushed apart as far as two objects. With
+``coarse_depth: k`` the lift trains a second block of ``dim`` features, with the same settings and
+``undecided: push``, on the patches regrouped by the masks at most ``k`` deep in the view's nesting tree
+(:func:`trace3d.masks.patches.coarser_patches`), and the features are the two blocks side by side
+(2 x ``dim``): a distance between two Gaussians then counts both how the fine and how the coarse masks
+cut them. Needs the patch step's hierarchy beside the maps (the raw patches, ``consistent_masks: false``).
+
 The ``paper`` preset is the printed kernel with the released code's learning rate (0.005), counts and
 pixels: at the printed lr 1e-5 the loss does not move in 1,500 iterations on a default room, at
 0.005 it gave the best test-view query IoU of the forms we measured (docs/lifting.md).
@@ -99,6 +108,10 @@ class ContrastiveParams:
     query: dict = field(default_factory=dict)  # QueryParams overrides, used when the lift is queried
     undecided: Literal["push", "ignore"] = "push"  # pairs of patches under one mask (module docstring)
     undecided_weight: float = 0.0  # under ``ignore``: the weight such a pair keeps in the denominator
+    # a second block of ``dim`` features trained, with the same settings (``push``), on the patches regrouped by
+    # their masks at most this deep (trace3d.masks.patches.coarser_patches; needs the patch step's hierarchy):
+    # the features are the two blocks side by side. None: one block (the paper). Module docstring.
+    coarse_depth: int | None = None
 
     def __post_init__(self) -> None:
         for key, value in PRESET_VALUES[self.preset].items():
@@ -109,6 +122,8 @@ class ContrastiveParams:
                              f"{self.iterations}, {self.pixels}, {self.pool_pixels}")
         if self.undecided not in ("push", "ignore"):
             raise ValueError(f"undecided must be 'push' or 'ignore', got {self.undecided!r}")
+        if self.coarse_depth is not None and self.coarse_depth < 0:
+            raise ValueError(f"coarse_depth must be >= 0 or null, got {self.coarse_depth}")
         if not 0.0 <= self.undecided_weight <= 1.0:
             raise ValueError(f"undecided_weight must lie in [0, 1], got {self.undecided_weight}")
         if not (self.lr > 0 and self.temperature > 0 and self.temperature_pos > 0 and self.temperature_neg > 0):

@@ -63,6 +63,21 @@ def undecided_relations(labels_dir: Path, cameras) -> list[np.ndarray]:
     return out
 
 
+def coarse_label_maps(labels_dir: Path, cameras, maps: list[np.ndarray], depth: int) -> list[np.ndarray]:
+    """Per training view the patches regrouped by their masks at most ``depth`` deep (``coarse_depth``), from
+    the patch step's hierarchies beside the maps; one sentence if the folder holds none (merged maps)."""
+    from ..masks.patches import coarser_patches, read_patches
+
+    out = []
+    for cam, patch_map in zip(cameras, maps):
+        path = labels_dir / f"{cam.name}.json"
+        if not path.is_file():
+            raise ConfigError(f"lift params.coarse_depth needs the patch step's hierarchy {path}; use it on the raw "
+                              f"patches (consistent_masks: false), not on merged instance maps.")
+        out.append(coarser_patches(patch_map, read_patches(labels_dir, cam.name)[1], depth))
+    return out
+
+
 def run_lift(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Path | None, out_dir: Path,
              params: dict, progress: bool = True) -> dict:
     """Run the lift step into ``out_dir``; returns the lift.json content."""
@@ -103,6 +118,23 @@ def run_lift(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Pat
                    f"contrastive loss has nothing to separate, so the features will not tell objects apart")
         log.warning("lift: %s; check the masks (or the merge) that made these maps", warning)
     features, history, timing = lift_features(model, train, maps, p, progress=progress, relations=relations)
+    coarse_info = {}
+    if p.coarse_depth is not None:
+        import dataclasses
+
+        coarse_maps = coarse_label_maps(Path(labels_dir), train, maps, p.coarse_depth)
+        counts = [int(np.unique(m[m > 0]).size) for m in coarse_maps]
+        log.info("lift: the coarse block on the patches regrouped by the masks at most %d deep: %.1f labels per "
+                 "view (the patches: %.1f)", p.coarse_depth, float(np.mean(counts)),
+                 float(np.mean([np.unique(m[m > 0]).size for m in maps])))
+        coarse, coarse_history, coarse_timing = lift_features(
+            model, train, coarse_maps, dataclasses.replace(p, undecided="push"), progress=progress)
+        features = np.concatenate([features, coarse], axis=1)
+        write_history(out_dir / "loss_coarse.csv", coarse_history)
+        tail = [v for _, v in coarse_history[-max(1, len(coarse_history) // 20):]]
+        coarse_info = {"coarse": {"depth": p.coarse_depth, "labels_per_view": float(np.mean(counts)),
+                                  "final_loss": float(np.mean(tail)) if tail else None,
+                                  "train_seconds": coarse_timing["train_seconds"]}}
     np.save(out_dir / "features.npy", features)
     write_history(out_dir / "loss.csv", history)
     loss_picture(out_dir / "loss.png", history)
@@ -112,7 +144,7 @@ def run_lift(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Pat
     tail = [v for _, v in history[-max(1, len(history) // 20):]]
     info = {"method": "contrastive", "params": to_dict(p), "gaussians": len(model), "dim": int(features.shape[1]),
             "seconds": time.perf_counter() - start, "final_loss": float(np.mean(tail)) if tail else None,
-            **timing}
+            **timing, **coarse_info}
     if warning:
         info["warning"] = warning
     write_json(out_dir / "lift.json", info)

@@ -133,6 +133,33 @@ def select_masks(masks: np.ndarray, scores: np.ndarray, params: PatchParams) -> 
     return masks[keep], scores[keep]
 
 
+def coarser_patches(patch_map: np.ndarray, hierarchy: "PatchHierarchy", max_depth: int) -> np.ndarray:
+    """[H, W] int64: the patches regrouped by their masks at most ``max_depth`` deep (:func:`nesting_depth`,
+    read from the hierarchy: mask A contains mask B when every patch of B lies in A and A is larger, or
+    equal with a lower index). Two patches share a label when the same such masks cover them; labels are
+    1.. in raster order of their first pixel; a patch covered by none of them, and uncovered pixels, get 0.
+    The contrastive lift's coarse block (``coarse_depth``) trains on these."""
+    member = hierarchy.membership()  # [P + 1, M]
+    M = member.shape[1]
+    counts = member.sum(axis=0).astype(np.int64)
+    inter = member.T.astype(np.int64) @ member.astype(np.int64)  # [M, M] shared patches
+    area = np.asarray(hierarchy.mask_areas, np.int64)
+    index = np.arange(M)
+    contains = (inter >= counts[None, :]) & ((area[:, None] > area[None, :]) |
+                                             ((area[:, None] == area[None, :]) & (index[:, None] < index[None, :])))
+    keep = contains.sum(axis=0) <= max_depth
+    signature = member[:, keep]
+    _, group = np.unique(signature, axis=0, return_inverse=True)
+    group = group.reshape(-1) + 1
+    group[~signature.any(axis=1)] = 0
+    coarse = group[np.asarray(patch_map, np.int64)]
+    values, first = np.unique(coarse, return_index=True)
+    first, values = first[values > 0], values[values > 0]
+    relabel = np.zeros(int(group.max(initial=0)) + 1, np.int64)
+    relabel[values[np.argsort(first, kind="stable")]] = np.arange(1, len(values) + 1)
+    return relabel[coarse]
+
+
 # ----------------------------------------------------------------------------------------------
 # Hierarchy
 # ----------------------------------------------------------------------------------------------
