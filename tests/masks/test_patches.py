@@ -253,7 +253,7 @@ class TestNestingDepth:
         """Regrouping the patches by the hierarchy's masks at most k deep gives the patches of those masks
         themselves (no absorption on either side), for nested trees with duplicates and uncovered pixels."""
         rng = np.random.default_rng(11)
-        for trial in range(12):
+        for _ in range(12):
             h, w = 12, 16
             masks = []
 
