@@ -253,29 +253,29 @@ class TestNestingDepth:
         """Regrouping the patches by the hierarchy's masks at most k deep gives the patches of those masks
         themselves (no absorption on either side), for nested trees with duplicates and uncovered pixels."""
         rng = np.random.default_rng(11)
+        h, w = 12, 16
+
+        def split(masks, y0, y1, x0, x1, depth):
+            if depth > 3 or (y1 - y0) * (x1 - x0) < 4:
+                return
+            m = np.zeros((h, w), bool)
+            m[y0:y1, x0:x1] = True
+            masks.append(m)
+            if rng.random() < 0.2:
+                masks.append(m.copy())  # a duplicate mask
+            if rng.random() < 0.7:
+                if (y1 - y0) >= (x1 - x0):
+                    cut = int(rng.integers(y0 + 1, y1))
+                    split(masks, y0, cut, x0, x1, depth + 1)
+                    split(masks, cut, y1, x0, x1, depth + 1)
+                else:
+                    cut = int(rng.integers(x0 + 1, x1))
+                    split(masks, y0, y1, x0, cut, depth + 1)
+                    split(masks, y0, y1, cut, x1, depth + 1)
+
         for _ in range(12):
-            h, w = 12, 16
             masks = []
-
-            def split(y0, y1, x0, x1, depth):
-                if depth > 3 or (y1 - y0) * (x1 - x0) < 4:
-                    return
-                m = np.zeros((h, w), bool)
-                m[y0:y1, x0:x1] = True
-                masks.append(m)
-                if rng.random() < 0.2:
-                    masks.append(m.copy())  # a duplicate mask
-                if rng.random() < 0.7:
-                    if (y1 - y0) >= (x1 - x0):
-                        cut = int(rng.integers(y0 + 1, y1))
-                        split(y0, cut, x0, x1, depth + 1)
-                        split(cut, y1, x0, x1, depth + 1)
-                    else:
-                        cut = int(rng.integers(x0 + 1, x1))
-                        split(y0, y1, x0, cut, depth + 1)
-                        split(y0, y1, cut, x1, depth + 1)
-
-            split(0, h, 0, w - 3, 0)  # the last three columns stay uncovered
+            split(masks, 0, h, 0, w - 3, 0)  # the last three columns stay uncovered
             order = rng.permutation(len(masks))
             masks = np.stack(masks)[order]
             patch_map, hierarchy = masks_to_patches(masks, 0)
