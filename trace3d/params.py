@@ -176,11 +176,12 @@ DECLARED_RANGES: dict[str, dict[str, str]] = {
         "normal_smooth": ">= 0", "crease_reach": ">= 0", "depth_reach": ">= 0", "colour_sigma": ">= 0",
         "plane_tolerance": ">= 0", "plane_weight": ">= 0", "plane_discount": ">= 0", "max_planes": ">= 0",
         "plane_iterations": ">= 0", "small_area": "[0, 1)", "min_area": "[0, 1)", "min_alpha": "[0, 1)",
-        "plane_min_share": "[0, 1)", "plane_member": "[0, 1)", "max_area": "(0, 1]", "reference_pixels": ">= 1"},
+        "plane_min_share": "[0, 1)", "plane_member": "[0, 1)", "max_area": "(0, 1]", "reference_pixels": ">= 1",
+        "finest_level": ">= 0"},
     "trace3d.lifting.contrastive:ContrastiveParams": {
         "dim": ">= 1", "iterations": ">= 1", "pixels": ">= 2", "pool_pixels": ">= 2", "lr": "> 0",
         "temperature": "> 0", "temperature_pos": "> 0", "temperature_neg": "> 0", "seed": ">= 0",
-        "undecided_weight": "[0, 1]"},
+        "undecided_weight": "[0, 1]", "coarse_depth": ">= 0"},
 }
 
 

@@ -543,7 +543,7 @@ def test_shipped_configs_pass_the_schema():
 RELATED_FIELDS = {
     "SyntheticParams": ("camera_height", "camera_radius", "clear_radius"),  # the room's size, one another
     "GraphParams": ("max_area",),  # > min_area
-    "GeometryParams": ("max_area",),  # > min_area
+    "GeometryParams": ("max_area", "finest_level"),  # > min_area; < the number of thresholds
     "RefineParams": ("iterations",),  # >= every detect_at
 }
 
