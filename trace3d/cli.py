@@ -348,6 +348,13 @@ def _interrupted(exc: BaseException) -> KeyboardInterrupt | None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    how = None
+    if argv is None and os.environ.get("TRACE3D_FORKSERVER"):  # the command itself, opted in (docs/performance.md)
+        from .tooling.forkserver import delegate
+
+        status, how = delegate(sys.argv[1:])
+        if status is not None:
+            return status
     _entry_point_environment()
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(_help_step(argv))
@@ -363,6 +370,10 @@ def main(argv: list[str] | None = None) -> int:
     for handler in logging.getLogger().handlers:
         if not any(isinstance(f, TempPathFilter) for f in handler.filters):
             handler.addFilter(TempPathFilter())
+    from .tooling import forkserver
+
+    if how or forkserver.CHILD:
+        log.debug("trace3d %s: %s", args.command, forkserver.CHILD or how)
     import signal
     import threading
 
