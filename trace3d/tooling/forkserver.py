@@ -329,15 +329,17 @@ def _recv(sock: socket.socket, with_fds: bool = False) -> tuple[dict, list[int]]
 # the job's side
 # ----------------------------------------------------------------------------------------------
 
-def delegate(argv: list[str], entry: str = "cli") -> tuple[int | None, str]:
-    """Run ``trace3d <argv>`` in a fork of the server named by ``TRACE3D_FORKSERVER``.
+def delegate(argv: list[str], entry: str = "cli", key: str | None = None) -> tuple[int | None, str]:
+    """Run ``trace3d <argv>`` (``entry`` "cli"; "probe": ``python -m trace3d.startup_probe <argv>``, the
+    benchmark's) in a fork of the server named by ``TRACE3D_FORKSERVER``, of ``key`` (default: the
+    job's, :func:`job_key`).
 
     Returns (exit status, how it ran) when it ran there, (None, why not) when the caller must run it
     in-process. Never raises for the server's sake."""
     folder = os.environ.get(ENV_VAR)
     if not folder or CHILD is not None:
         return None, "ran in-process (no fork server)"
-    key = job_key(argv) if entry == "cli" else entry
+    key = key or job_key(argv)
     if key is None:
         return None, "ran in-process (not a pipeline step)"
     path = os.path.join(folder, f"{key}.sock")
