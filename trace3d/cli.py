@@ -355,7 +355,7 @@ def _interrupted(exc: BaseException) -> KeyboardInterrupt | None:
 def main(argv: list[str] | None = None) -> int:
     how = None
     if argv is None and os.environ.get("TRACE3D_FORKSERVER"):  # the command itself, opted in (docs/performance.md)
-        from .tooling.forkserver import delegate
+        from .tooling.forkclient import delegate
 
         status, how = delegate(sys.argv[1:])
         if status is not None:
@@ -375,10 +375,10 @@ def main(argv: list[str] | None = None) -> int:
     for handler in logging.getLogger().handlers:
         if not any(isinstance(f, TempPathFilter) for f in handler.filters):
             handler.addFilter(TempPathFilter())
-    from .tooling import forkserver
+    from .tooling import forkclient
 
-    if how or forkserver.CHILD:
-        log.debug("trace3d %s: %s", args.command, forkserver.CHILD or how)
+    if how or forkclient.CHILD:
+        log.debug("trace3d %s: %s", args.command, forkclient.CHILD or how)
     import signal
     import threading
 

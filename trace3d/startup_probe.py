@@ -79,16 +79,16 @@ def main(argv: list[str] | None = None) -> int:
                         help="run the probe in a fork of the fork server of key `default` (TRACE3D_FORKSERVER)")
     args = parser.parse_args(argv)
     if args.server:
-        from .tooling.forkserver import delegate
+        from .tooling.forkclient import delegate
 
         status, how = delegate([args.command, repr(args.spawn)], entry="probe", key="default")
         if status is None:
             print(f"startup_probe: {how}", file=sys.stderr)
             return 1
         return status
-    from .tooling import forkserver
+    from .tooling import forkclient
 
-    result = {**_probe(args.command, args.spawn), "forked": forkserver.CHILD is not None}
+    result = {**_probe(args.command, args.spawn), "forked": forkclient.CHILD is not None}
     print(json.dumps(result))
     return 0
 

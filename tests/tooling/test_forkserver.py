@@ -22,8 +22,8 @@ from pathlib import Path
 import pytest
 
 from trace3d.cli import main
-from trace3d.tooling.forkserver import (Server, check_folder, effective_environment, job_key, job_request, start,
-                                        stop, unsafe)
+from trace3d.tooling.forkclient import job_key, job_request
+from trace3d.tooling.forkserver import Server, check_folder, effective_environment, start, stop, unsafe
 
 REPO = Path(__file__).resolve().parents[2]
 SCENE = {"width": 48, "height": 36, "num_views": 6, "test_every": 3, "num_objects": 10, "supersample": 1}

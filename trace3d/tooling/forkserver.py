@@ -11,12 +11,16 @@ server process pays that once; each job then forks from it:
 **One server per process setting.** The in-process command sets ``OMP_NUM_THREADS``, ``MKL_NUM_THREADS``,
 ``OPENBLAS_NUM_THREADS`` and ``NUMBA_NUM_THREADS`` to its ``--threads N`` (:func:`trace3d.threads.limit_threads`)
 and, for the lift, ``GOMP_SPINCOUNT`` (:data:`trace3d.cli.SPIN_COMMANDS`) *before* it imports numpy, torch and
-numba, whose runtimes read them once, when loaded. A server is started with those same values, so its
-libraries are loaded as the job's would be: its key is the thread count (``default``: no ``--threads``) plus
-``-spin`` for the spinning steps, its socket ``DIR/<key>.sock``. A job finds the server of its own key or
-runs in-process.
+numba, whose runtimes read them once, when loaded. A server loads its libraries with the values a job of
+its key would have (:func:`effective_environment`): the key is the thread count (``default``: no
+``--threads``) plus ``-spin`` for the spinning steps, the socket ``DIR/<key>.sock``. A server of N threads
+serves Snakemake's jobs of N threads, whose environment Snakemake gives N in ``OMP_NUM_THREADS``,
+``GOTO_NUM_THREADS``, ``OPENBLAS_NUM_THREADS``, ``MKL_NUM_THREADS``, ``VECLIB_MAXIMUM_THREADS`` and
+``NUMEXPR_NUM_THREADS`` (:data:`SNAKEMAKE_THREAD_VARS`); a job finds the server of its own key or runs
+in-process. The job's side (which key, what it sends, the wait) is :mod:`trace3d.tooling.forkclient`, which
+the command imports; this module imports every step.
 
-**The server** (:func:`serve`) makes the entry point's process settings (:func:`trace3d.cli._entry_point_environment`),
+**The server** (:func:`serve`) makes the process settings of a job of its key (:func:`effective_environment`),
 imports torch, numba, every step's handler and library modules, and loads every recorded kernel
 (``kernel_signatures.json``) from ``NUMBA_CACHE_DIR`` -- without running anything that starts a thread pool
 (no ``limit_threads``, no torch op, no kernel call). Before it listens it checks that it runs no more threads
@@ -24,20 +28,29 @@ than right after its bare ``import numpy, scipy.linalg, torch, numba`` (forking 
 OpenBLAS's pools, started when it loads, are shut down before a fork by OpenBLAS itself). Then it
 listens on ``DIR/<key>.sock``, ``DIR`` being a folder of mode 0700 that only its owner may enter.
 
-**A job** (:func:`delegate`, called by :func:`trace3d.cli.main` when ``TRACE3D_FORKSERVER`` is set) connects,
-sends its argv, working folder, environment, umask, nice value, CPU affinity, resource limits,
-``sys.path`` and its stdin/stdout/stderr (as file descriptors), and waits. The server checks that the job
-may run in a fork of it (:func:`unsafe`): the same user, interpreter and flags; the same values of every
-environment variable read when the libraries load (:data:`AGREE_PREFIXES`, :data:`AGREE_NAMES`: numba's,
-OpenMP's, MKL's, OpenBLAS's, torch's, CUDA's, Python's, the locale, a batch job's id); every module the
-server has loaded found at the same file through the job's ``sys.path``; no source file of the package
-changed, appeared or vanished since the server loaded it (size and modification time); and limits the
-fork can take on (a nice value and resource limits no looser than the server's). If so it forks: the child
-takes the job's descriptors, folder, environment and the rest, and runs :func:`trace3d.cli.main` with the
-job's arguments -- the code path of an in-process run -- while the server sends the child's pid, then its
-exit status, back to the job, which exits with it (a child killed by a signal: the job kills itself with
-it). Otherwise the job runs in-process, as without a server; so it does when no server answers. Which way
-a job ran is logged at debug level (``trace3d -v``).
+**A job** (:func:`trace3d.tooling.forkclient.delegate`, called by :func:`trace3d.cli.main` when
+``TRACE3D_FORKSERVER`` is set) connects, sends its argv, working folder, environment, umask, nice value, CPU
+affinity, resource limits, ``sys.path`` and its stdin/stdout/stderr (as file descriptors), and waits. The
+server checks that the job may run in a fork of it (:func:`unsafe`): the same user, interpreter and flags; the
+same values, once the entry point's and ``--threads``' settings are made, of every environment variable read
+when the libraries load (:data:`AGREE_PREFIXES`, :data:`AGREE_NAMES`: numba's, OpenMP's, MKL's, OpenBLAS's,
+torch's, CUDA's, Python's, the loader's, the locale, a batch job's id); every module the server has loaded
+found at the same file through the job's ``sys.path``; no source file of the package changed, appeared or
+vanished since the server loaded it (size and modification time); and limits the fork can take on (a nice
+value and resource limits no looser than the server's), in the server's control group. If so it forks: the
+child takes the job's descriptors, folder, environment (plus what the server's imports added to the
+environment, as the job's own imports would: cv2's ``LD_LIBRARY_PATH``) and the rest, re-seeds numpy's global
+generator from the OS as a fresh process's import does, and runs :func:`trace3d.cli.main` with the job's
+arguments -- the code path of an in-process run -- while the server sends the child's pid, then its exit
+status, back to the job, which exits with it (a child killed by a signal: the job kills itself with it).
+Otherwise the job runs in-process, as without a server; so it does when no server answers. Which way a job ran
+is logged at debug level (``trace3d -v``), each job and each refusal in the server's log (``DIR/<key>.log``
+when started by :func:`start`).
+
+What differs from an in-process run, by design: the warnings and log lines that importing the libraries
+prints were printed once, into the server's log; Python's string hashes and numpy's legacy global
+generator are the server's (re-seeded); numba's OpenMP layer is re-armed for the child
+(:func:`_numba_threads_after_fork`). The outputs are the same bytes (tests/workflow/test_forkserver.py).
 
 **Signals and deaths.** SIGINT, SIGTERM, SIGHUP, SIGQUIT, SIGUSR1, SIGUSR2 and SIGALRM sent to the job go on
 to the child, which handles them as the in-process command does (SIGTERM and Ctrl-C remove the temporary
@@ -59,7 +72,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import os
 import signal
 import socket
@@ -68,7 +80,9 @@ import sys
 import time
 from pathlib import Path
 
-ENV_VAR = "TRACE3D_FORKSERVER"
+from . import forkclient
+from .forkclient import ENV_VAR, FORWARDED, _cgroup, _Empty, _interpreter, _limits, _recv, _send
+
 # environment variables read when Python, numpy, torch, numba or their runtimes load, or that place a
 # process in a batch job: a job runs in a fork only where the server's values are the same
 AGREE_PREFIXES = ("NUMBA_", "OMP_", "GOMP_", "KMP_", "MKL_", "OPENBLAS_", "GOTO", "BLIS_", "TORCH", "PYTORCH",
@@ -79,42 +93,6 @@ AGREE_NAMES = ("HOME", "LANG", "LANGUAGE", "TZ", "VECLIB_MAXIMUM_THREADS", "NUME
 SNAKEMAKE_THREAD_VARS = ("OMP_NUM_THREADS", "GOTO_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
                          "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")
 NOT_COMPARED = (ENV_VAR,)
-# the signals a job hands on to its child (every catchable one whose default ends a process and that Python
-# does not ignore)
-FORWARDED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2,
-             signal.SIGALRM)
-HEADER = struct.Struct("!I")
-
-# set in a forked child: how it ran (trace3d.cli logs it), and that it must not delegate again
-CHILD: str | None = None
-
-
-# ----------------------------------------------------------------------------------------------
-# keys: which server a job needs
-# ----------------------------------------------------------------------------------------------
-
-def job_key(argv: list[str]) -> str | None:
-    """The server key of ``trace3d <argv>``: ``<N>`` for ``--threads N`` (``default`` without), plus ``-spin``
-    for the steps whose workers spin (:data:`trace3d.cli.SPIN_COMMANDS`); None for a command that is not a
-    pipeline step (benchmarks, ``--help``, ``describe``...: they run in-process)."""
-    from ..steps import BY_COMMAND
-
-    threads, i = "default", 0
-    while i < len(argv) and argv[i].startswith("-"):
-        token = argv[i]
-        if token in ("-v", "--verbose"):
-            i += 1
-        elif token == "--threads" and i + 1 < len(argv):
-            threads, i = argv[i + 1], i + 2
-        elif token.startswith("--threads="):
-            threads, i = token.split("=", 1)[1], i + 1
-        else:
-            return None
-    if i >= len(argv) or argv[i] not in BY_COMMAND or any(a in ("-h", "--help") for a in argv):
-        return None
-    if threads != "default" and not (threads.isdigit() and int(threads) > 0):
-        return None  # the in-process parser words the error
-    return f"{int(threads) if threads != 'default' else threads}" + ("-spin" if BY_COMMAND[argv[i]].spin else "")
 
 
 def _key_settings(key: str) -> tuple[int | None, bool]:
@@ -180,25 +158,6 @@ def source_stamp(package: Path | None = None) -> dict[str, list[int]]:
     return out
 
 
-def _interpreter() -> dict:
-    return {"executable": sys.executable, "version": sys.version, "flags": list(sys.flags),
-            "prefix": sys.prefix, "uid": os.getuid()}
-
-
-def _cgroup() -> str:
-    try:
-        return Path("/proc/self/cgroup").read_text()
-    except OSError:
-        return ""
-
-
-def _limits() -> dict[str, list[int]]:
-    import resource
-
-    return {name: list(resource.getrlimit(getattr(resource, name))) for name in dir(resource)
-            if name.startswith("RLIMIT_")}
-
-
 def _origin(name: str, path: list[str]) -> str | None:
     """Where a fresh import of the top-level module ``name`` would load it from, searching ``path``."""
     import importlib.machinery
@@ -227,6 +186,7 @@ class Server:
         self.environment = agreeing_environment(environ)  # the server's effective environment
         self.interpreter = _interpreter()
         self.package = package or Path(__file__).resolve().parent.parent
+        self.added: dict[str, str] = {}  # what the server's imports added to its environment
         self.stamp = source_stamp(self.package)
         self.cgroup = _cgroup()
         self.limits = _limits()
@@ -282,153 +242,6 @@ def _within(value: int, bound: int) -> bool:
     if bound == resource.RLIM_INFINITY:
         return True
     return value != resource.RLIM_INFINITY and value <= bound
-
-
-# ----------------------------------------------------------------------------------------------
-# wire: a length-prefixed JSON message, the first carrying the job's descriptors
-# ----------------------------------------------------------------------------------------------
-
-def _send(sock: socket.socket, message: dict, fds: list[int] | None = None) -> None:
-    data = json.dumps(message).encode()
-    if fds:
-        socket.send_fds(sock, [HEADER.pack(len(data))], fds)
-        sock.sendall(data)
-    else:
-        sock.sendall(HEADER.pack(len(data)) + data)
-
-
-def _recv_exact(sock: socket.socket, size: int) -> bytes:
-    chunks, got = [], 0
-    while got < size:
-        chunk = sock.recv(size - got)
-        if not chunk:
-            raise ConnectionError("the connection closed mid-message")
-        chunks.append(chunk)
-        got += len(chunk)
-    return b"".join(chunks)
-
-
-class _Empty(ConnectionError):
-    """A connection closed before its first byte (:func:`start` asking whether a server listens)."""
-
-
-def _recv(sock: socket.socket, with_fds: bool = False) -> tuple[dict, list[int]]:
-    if with_fds:
-        head, fds, _, _ = socket.recv_fds(sock, HEADER.size, 8)
-        if not head and not fds:
-            raise _Empty()
-        if len(head) < HEADER.size:
-            head += _recv_exact(sock, HEADER.size - len(head))
-    else:
-        head, fds = _recv_exact(sock, HEADER.size), []
-    (size,) = HEADER.unpack(head)
-    return json.loads(_recv_exact(sock, size)), list(fds)
-
-
-# ----------------------------------------------------------------------------------------------
-# the job's side
-# ----------------------------------------------------------------------------------------------
-
-def delegate(argv: list[str], entry: str = "cli", key: str | None = None) -> tuple[int | None, str]:
-    """Run ``trace3d <argv>`` (``entry`` "cli"; "probe": ``python -m trace3d.startup_probe <argv>``, the
-    benchmark's) in a fork of the server named by ``TRACE3D_FORKSERVER``, of ``key`` (default: the
-    job's, :func:`job_key`).
-
-    Returns (exit status, how it ran) when it ran there, (None, why not) when the caller must run it
-    in-process. Never raises for the server's sake."""
-    folder = os.environ.get(ENV_VAR)
-    if not folder or CHILD is not None:
-        return None, "ran in-process (no fork server)"
-    key = key or job_key(argv)
-    if key is None:
-        return None, "ran in-process (not a pipeline step)"
-    path = os.path.join(folder, f"{key}.sock")
-    try:
-        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        sock.settimeout(10)
-        sock.connect(path)
-    except OSError as exc:
-        return None, f"ran in-process (no fork server at {path}: {exc.strerror or exc})"
-    try:
-        return _delegate(sock, argv, key, entry)
-    except (OSError, ValueError, KeyError) as exc:
-        return None, f"ran in-process (the fork server at {path} did not answer: {exc})"
-    finally:
-        sock.close()
-
-
-def job_request(argv: list[str], key: str, entry: str = "cli") -> dict:
-    """What a job sends its server: everything of this process that the fork takes on or checks."""
-    mask = os.umask(0)
-    os.umask(mask)
-    return {"argv": argv, "entry": entry, "key": key, "argv0": sys.argv[0] if sys.argv else "trace3d",
-            "cwd": os.getcwd(), "environ": dict(os.environ), "umask": mask, "path": list(sys.path),
-            "interpreter": _interpreter(), "cgroup": _cgroup(), "limits": _limits(),
-            "nice": os.getpriority(os.PRIO_PROCESS, 0), "fds": [fd for fd in (0, 1, 2) if _is_open(fd)],
-            "affinity": sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None}
-
-
-def _delegate(sock: socket.socket, argv: list[str], key: str, entry: str) -> tuple[int | None, str]:
-    request = job_request(argv, key, entry)
-    fds = request["fds"]
-    for stream in (sys.stdout, sys.stderr):
-        with contextlib.suppress(Exception):
-            stream.flush()
-    _send(sock, request, fds)
-    reply, _ = _recv(sock)
-    if not reply.get("ok"):
-        return None, f"ran in-process (the fork server declined: {reply.get('why')})"
-    child = int(reply["pid"])
-    sock.settimeout(None)
-    previous = {}
-
-    def forward(signum, frame):  # noqa: ARG001 - signal handler signature
-        with contextlib.suppress(ProcessLookupError):
-            os.kill(child, signum)
-
-    for sig in FORWARDED:
-        with contextlib.suppress(ValueError, OSError):  # not the main thread: nothing to forward from
-            previous[sig] = signal.signal(sig, forward)
-    try:
-        try:
-            status, _ = _recv(sock)
-        except (ConnectionError, OSError, ValueError):
-            _wait_gone(child)  # its death signal (PR_SET_PDEATHSIG) has it remove its temporary output
-            return None, (f"ran in-process again (the fork server's child {child} stopped without a status: "
-                          f"the server is gone)")
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    how = f"ran in the fork server's child {child} (server {reply.get('server')})"
-    if status.get("signal"):
-        sig = int(status["signal"])
-        for stream in (sys.stdout, sys.stderr):
-            with contextlib.suppress(Exception):
-                stream.flush()
-        signal.signal(sig, signal.SIG_DFL)
-        os.kill(os.getpid(), sig)
-        return 128 + sig, how
-    return int(status["exit"]), how
-
-
-def _wait_gone(pid: int, timeout_s: float = 60.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            return
-        except PermissionError:  # the pid is someone else's now
-            return
-        time.sleep(0.05)
-
-
-def _is_open(fd: int) -> bool:
-    try:
-        os.fstat(fd)
-        return True
-    except OSError:
-        return False
 
 
 # ----------------------------------------------------------------------------------------------
@@ -488,11 +301,14 @@ def preload(key: str) -> dict:
                 except Exception:  # noqa: BLE001 - a kernel that cannot load is loaded by the job, as without a server
                     failed += 1
     after = _threads()
+    # what the imports put into the environment (cv2: LD_LIBRARY_PATH, for its subprocesses), as they would
+    # in the job's own imports: the child adds it to the job's environment
+    added = {k: v for k, v in os.environ.items() if environ.get(k) != v}
     if len(after) > len(bare):
         raise RuntimeError(f"the preload started threads ({len(bare)} after the bare imports: {bare}; {len(after)} "
                            f"after the steps and kernels: {after}); a fork would lose them")
     return {"threads": after, "kernels": loaded, "kernels_failed": failed, "cpu_s": round(time.process_time() - cpu, 2),
-            "environ": environ}
+            "environ": environ, "added": added}
 
 
 def _say(text: str) -> None:
@@ -516,6 +332,7 @@ def serve(folder: Path, key: str, idle_s: float = 3600.0) -> int:
     check_folder(folder)
     info = preload(key)
     server = Server(key, info["environ"])
+    server.added = info["added"]
     gc.collect()
     gc.freeze()  # the children's garbage collector leaves the preloaded objects (and their pages) alone
     sock_path = folder / f"{key}.sock"
@@ -624,7 +441,7 @@ def _start_job(conn, server: Server, listener, selector, jobs) -> int | None:
             stream.flush()
         pid = os.fork()
         if pid == 0:  # the child: never returns
-            _child(conn, request, fds, (listener, selector, jobs), blocked)
+            _child(conn, request, fds, (listener, selector, jobs, server.added), blocked)
         signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
         for fd in fds:
             os.close(fd)
@@ -644,10 +461,9 @@ def _start_job(conn, server: Server, listener, selector, jobs) -> int | None:
 
 def _child(conn, request: dict, fds: list[int], server_state, blocked) -> None:
     """The forked child: become the job, run it, exit with its status (never returns)."""
-    global CHILD
     status = 1
     server_pid = os.getppid()
-    listener, selector, jobs = server_state
+    listener, selector, jobs, added = server_state
     try:
         for sig in FORWARDED + (signal.SIGCHLD,):
             signal.signal(sig, signal.SIG_DFL)
@@ -670,6 +486,7 @@ def _child(conn, request: dict, fds: list[int], server_state, blocked) -> None:
         os.umask(request["umask"])
         os.environ.clear()
         os.environ.update(request["environ"])
+        os.environ.update(added)
         import resource
         import tempfile
 
@@ -683,13 +500,15 @@ def _child(conn, request: dict, fds: list[int], server_state, blocked) -> None:
             with contextlib.suppress(OSError):
                 os.sched_setaffinity(0, request["affinity"])
         tempfile.tempdir = None  # found again from this environment's TMPDIR
+        if "numpy" in sys.modules:  # numpy's global generator, seeded from the OS at import in a fresh process
+            sys.modules["numpy"].random.seed()
         sys.argv = [request["argv0"], *request["argv"]]
         sys.path[:] = request["path"]
         for stream, fd in ((sys.stdout, 1), (sys.stderr, 2)):
             with contextlib.suppress(Exception):
                 stream.reconfigure(line_buffering=fd == 2 or os.isatty(fd))
         _numba_threads_after_fork()
-        CHILD = f"ran in a fork of the fork server {server_pid} (the job's pid is {os.getpid()})"
+        forkclient.CHILD = f"ran in a fork of the fork server {server_pid} (the job's pid is {os.getpid()})"
         signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
         status = _run(request)
     except SystemExit as exc:
