@@ -167,32 +167,44 @@ def _delegate(sock: socket.socket, argv: list[str], key: str, entry: str) -> tup
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
             stream.flush()
-    _send(sock, request, fds)
-    reply, _ = _recv(sock)
-    if not reply.get("ok"):
-        return None, f"ran in-process (the fork server declined: {reply.get('why')})"
-    child = int(reply["pid"])
-    sock.settimeout(None)
+    # signals from now on go to the child; one that comes before the child's pid is held until then (or,
+    # if the server declines, delivered to this process as it would have been without the server)
+    child: list[int] = []
+    pending: list[int] = []
     previous = {}
 
     def forward(signum, frame):  # noqa: ARG001 - signal handler signature
-        with contextlib.suppress(ProcessLookupError):
-            os.kill(child, signum)
+        if child:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(child[0], signum)
+        else:
+            pending.append(signum)
 
     for sig in FORWARDED:
         with contextlib.suppress(ValueError, OSError):  # not the main thread: nothing to forward from
             previous[sig] = signal.signal(sig, forward)
     try:
+        _send(sock, request, fds)
+        reply, _ = _recv(sock)
+        if not reply.get("ok"):
+            return None, f"ran in-process (the fork server declined: {reply.get('why')})"
+        child.append(int(reply["pid"]))
+        sock.settimeout(None)
+        for sig in pending:
+            forward(sig, None)
+        pending.clear()
         try:
             status, _ = _recv(sock)
         except (ConnectionError, OSError, ValueError):
-            _wait_gone(child)  # its death signal (PR_SET_PDEATHSIG) has it remove its temporary output
-            return None, (f"ran in-process again (the fork server's child {child} stopped without a status: "
+            _wait_gone(child[0])  # its death signal (PR_SET_PDEATHSIG) has it remove its temporary output
+            return None, (f"ran in-process again (the fork server's child {child[0]} stopped without a status: "
                           f"the server is gone)")
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    how = f"ran in the fork server's child {child} (server {reply.get('server')})"
+        for sig in pending:  # never reached a child: this process's own, as without the server
+            os.kill(os.getpid(), sig)
+    how = f"ran in the fork server's child {child[0]} (server {reply.get('server')})"
     if status.get("signal"):
         sig = int(status["signal"])
         for stream in (sys.stdout, sys.stderr):

@@ -406,12 +406,16 @@ def serve(folder: Path, key: str, idle_s: float = 3600.0) -> int:
         pass
     finally:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
-        for pid in jobs:
+        for pid in jobs:  # a server stopped mid-job stops its jobs as SIGTERM would, and says so to them
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGTERM)
-        for pid in jobs:
+        for pid, job in jobs.items():
             with contextlib.suppress(ChildProcessError):
-                os.waitpid(pid, 0)
+                _, status = os.waitpid(pid, 0)
+                with contextlib.suppress(OSError):
+                    _send(job["conn"], {"signal": os.WTERMSIG(status)} if os.WIFSIGNALED(status)
+                          else {"exit": os.waitstatus_to_exitcode(status)})
+            job["conn"].close()
         listener.close()
         with contextlib.suppress(FileNotFoundError):
             if pid_path.read_text().strip() == str(os.getpid()):
