@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -192,6 +193,38 @@ def _start_slow_scene(folder: Path, out: Path) -> subprocess.Popen:
     return proc
 
 
+@contextlib.contextmanager
+def _blocked_job(folder: Path, tmp_path: Path):
+    """A patches job in the server, held while it checks its input: its scene folder's manifest lists a
+    file that is a named pipe, which the job reads to hash it (plain Python, no kernel running) until the
+    pipe's writer closes. Yields the job's process once its child reads the pipe."""
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    os.mkfifo(scene / "cameras.json")
+    (scene / ".trace3d-step").write_text(json.dumps({"step": "scene", "rules": ["scene"],
+                                                     "files": {"cameras.json": [0, "0" * 64]}}))
+    (tmp_path / "masks").mkdir()
+    proc = subprocess.Popen([sys.executable, "-m", "trace3d.cli", "patches", "--scene", str(scene), "--masks",
+                             str(tmp_path / "masks"), "--out", str(tmp_path / "patches")], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=job_env(folder), cwd=REPO)
+    deadline = time.monotonic() + 120
+    writer = None
+    while writer is None:  # a non-blocking open for writing succeeds once a reader has the pipe open
+        try:
+            writer = os.open(scene / "cameras.json", os.O_WRONLY | os.O_NONBLOCK)
+        except OSError:
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "the job never read its input"
+            time.sleep(0.01)
+    try:
+        yield proc
+    finally:
+        os.close(writer)
+        if proc.poll() is None:
+            proc.kill()
+        proc.communicate()
+
+
 def _gone(pids: list[int], timeout: float = 10.0) -> bool:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -210,29 +243,27 @@ def _children_state(pid: int) -> str:
 
 def test_sigterm_reaches_the_child_and_the_job_exits_with_its_status(server, tmp_path):
     folder, pid = server
-    out = tmp_path / "scene"
-    proc = _start_slow_scene(folder, out)
-    children = _children(pid)
-    assert len(children) == 1, children  # the job's work runs in the server's child, not in the job
-    proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 143, err
-    assert "Traceback" not in err, err
-    assert [line for line in err.splitlines() if line.startswith("trace3d ")] == [  # after the step's log lines
-        "trace3d scene: stopped (SIGTERM); nothing was written (an earlier output, if any, is unchanged)."]
-    assert _gone(children)
-    assert not out.exists() and not list(tmp_path.glob(".scene.tmp-*"))  # the child removed its temporary output
+    with _blocked_job(folder, tmp_path) as proc:
+        children = _children(pid)
+        assert len(children) == 1, children  # the job's work runs in the server's child, not in the job
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=120)
+        assert proc.returncode == 143, err
+        assert err.splitlines() == ["trace3d patches: stopped (SIGTERM); nothing was written (an earlier output, "
+                                    "if any, is unchanged)."]
+        assert _gone(children)
+    assert re.search(r"\(trace3d patches --scene \S+ \.\.\.\): \{'exit': 143\}", server_log(folder))
 
 
 def test_a_killed_job_leaves_no_child_running(server, tmp_path):
     folder, pid = server
-    proc = _start_slow_scene(folder, tmp_path / "scene")
-    children = _children(pid)
-    assert len(children) == 1, children
-    proc.kill()  # SIGKILL: nothing forwarded; the server sees the job's connection close
-    proc.wait()
-    assert _gone(children), "the job's child still runs after the job was killed"
-    assert not (tmp_path / "scene").exists()
+    with _blocked_job(folder, tmp_path) as proc:
+        children = _children(pid)
+        assert len(children) == 1, children
+        proc.kill()  # SIGKILL: nothing forwarded; the server sees the job's connection close
+        proc.wait()
+        assert _gone(children), "the job's child still runs after the job was killed"
+    assert re.search(r"\(trace3d patches --scene \S+ \.\.\.\): \{'signal': 9\}", server_log(folder))
 
 
 def test_a_child_leaves_with_its_server(tmp_path):
