@@ -25,6 +25,9 @@ ENV_VAR = "TRACE3D_FORKSERVER"
 FORWARDED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2,
              signal.SIGALRM)
 HEADER = struct.Struct("!I")
+# the signals whose default action dumps core
+CORE_SIGNALS = {signal.SIGQUIT, signal.SIGILL, signal.SIGTRAP, signal.SIGABRT, signal.SIGFPE, signal.SIGSEGV,
+                signal.SIGBUS, signal.SIGSYS, signal.SIGXCPU, signal.SIGXFSZ}
 
 # set in a forked child: how it ran (trace3d.cli logs it), and that it must not delegate again
 CHILD: str | None = None
@@ -211,6 +214,11 @@ def _delegate(sock: socket.socket, argv: list[str], key: str, entry: str) -> tup
             with contextlib.suppress(Exception):
                 stream.flush()
         signal.signal(sig, signal.SIG_DFL)
+        if sig in CORE_SIGNALS:  # the job dies of it too, without a core file of its own: the child's is the one
+            import resource
+
+            with contextlib.suppress(ValueError, OSError):
+                resource.setrlimit(resource.RLIMIT_CORE, (0, resource.getrlimit(resource.RLIMIT_CORE)[1]))
         os.kill(os.getpid(), sig)
         return 128 + sig, how
     return int(status["exit"]), how
