@@ -47,8 +47,9 @@ Otherwise the job runs in-process, as without a server; so it does when no serve
 is logged at debug level (``trace3d -v``), each job and each refusal in the server's log (``DIR/<key>.log``
 when started by :func:`start`).
 
-Known fault: a signal that stops a forked job while a numba kernel runs crashes the child (SIGSEGV) in
-about half of the cases (docs/performance.md, 'The fork server'); the job then ends as if killed.
+Known fault: a signal that stops a job while a numba kernel runs can crash it (SIGSEGV): rarely in a fresh
+process (1 of 147 measured), in about half of the cases in a forked child (docs/performance.md, 'The fork
+server'); the job then ends as if killed.
 
 What differs from an in-process run, by design: the warnings and log lines that importing the libraries
 prints were printed once, into the server's log; Python's string hashes and numpy's legacy global
