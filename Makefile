@@ -27,14 +27,31 @@ $(STAMP): requirements.txt pyproject.toml
 # at lift seed 0) and an HTML report of them, Tables 2 and 3 printed; then the rest of the grid
 # (the study's mask models, oracle and seeds, the official protocol, robustness) and the report again
 # over everything. `trace3d progress` (in another terminal, in this folder) says where the run is.
+# The jobs start from fork servers (trace3d/tooling/forkserver.py; FORKSERVER=0 turns them off): they have
+# imported the steps and loaded the kernels once, which every job would do again (docs/performance.md).
 reproduce: $(STAMP)
 	$(BIN)/python -m trace3d.tooling.warm --jobs $(CORES)
-	$(BIN)/snakemake --cores $(CORES) --show-failed-logs paper_tables
-	$(BIN)/snakemake --cores 1 paper_tables --report results/report.html
-	@cat results/tables/paper/table2.md results/tables/paper/table3.md
-	@echo "Tables 2 and 3 of the paper's rows above (results/tables/paper/, report: results/report.html); now the rest of the grid."
-	$(BIN)/snakemake --cores $(CORES) --show-failed-logs reproduce
+	$(WITH_FORKSERVER) \
+	$(BIN)/snakemake --cores $(CORES) --show-failed-logs paper_tables; \
+	$(BIN)/snakemake --cores 1 paper_tables --report results/report.html; \
+	cat results/tables/paper/table2.md results/tables/paper/table3.md; \
+	echo "Tables 2 and 3 of the paper's rows above (results/tables/paper/, report: results/report.html); now the rest of the grid."; \
+	$(BIN)/snakemake --cores $(CORES) --show-failed-logs reproduce; \
 	$(BIN)/snakemake --cores 1 reproduce --report results/report.html
+
+# The fork servers of one recipe (its lines joined into one shell): started in a private temporary folder,
+# named by TRACE3D_FORKSERVER for the commands that follow (TRACE3D_TEST_FORKSERVER for the tests:
+# tests/workflow/conftest.py), stopped when the shell leaves, whether the commands succeeded or not. If
+# they fail to start, the jobs run as without them.
+FORKSERVER ?= 1
+ifeq ($(FORKSERVER),1)
+WITH_FORKSERVER = set -e; fork=$$(mktemp -d); \
+	trap '$(BIN)/python -m trace3d.tooling.forkserver stop "$$fork/s" >/dev/null; rm -rf "$$fork"' EXIT; \
+	export TRACE3D_FORKSERVER="$$fork/s" TRACE3D_TEST_FORKSERVER="$$fork/s"; \
+	$(BIN)/python -m trace3d.tooling.forkserver start "$$fork/s" || true;
+else
+WITH_FORKSERVER = set -e; export TRACE3D_TEST_FORKSERVER=off;
+endif
 
 # Without ground truth or SAM (docs/masks.md, docs/capture.md): the default rooms with masks from the fitted
 # geometry (config/geometry.yaml; the default run's fits, made first if absent), and the LLFF fern capture
@@ -52,8 +69,10 @@ fern: $(STAMP)
 # The kernels are compiled first, over $(CORES) processes (trace3d/tooling/warm.py), so that no test compiles one;
 # then the suite runs on $(CORES) pytest-xdist workers, the whole-DAG runs taking turns on one of them
 # (their xdist_group; tests/conftest.py).
+# The whole-DAG tests' jobs start from fork servers (tests/workflow/conftest.py; FORKSERVER=0: without).
 test: $(STAMP)
 	$(BIN)/python -m trace3d.tooling.warm --jobs $(CORES)
+	$(WITH_FORKSERVER) unset TRACE3D_FORKSERVER; \
 	$(BIN)/python -m pytest -q -n $(CORES) --dist loadgroup --durations=20 tests
 
 # ruff (its rules in pyproject.toml's [tool.ruff]) over the Python, then Snakemake's own lint of the rules

@@ -202,6 +202,10 @@ def _cmd_bench(args: argparse.Namespace) -> None:
         from .bench.startup import run_bench
 
         result = run_bench(rounds=args.rounds, commands=["tables", "evaluate"] if args.quick else None)
+    elif args.name == "forkserver":
+        from .bench.forkserver import run_bench
+
+        result = run_bench(rounds=args.rounds, commands=["tables", "evaluate"] if args.quick else None)
     elif args.name == "scheduler":
         from .bench.scheduler import run_bench
 
@@ -277,7 +281,8 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="benchmarks; print one JSON object")
     p.add_argument("name", choices=["render", "synthetic", "trace", "lift", "lift-forms", "fit", "fit-sweep",
-                                    "prompts", "evaluate", "startup", "merge-vote", "scheduler", "mask-cues"])
+                                    "prompts", "evaluate", "startup", "forkserver", "merge-vote",
+                                    "scheduler", "mask-cues"])
     p.add_argument("--room", default="results/room0",
                    help="trace, lift: a fitted room's results folder (scene/, poses/, gaussians/, patches/ or "
                         "merge-paper/instances); prompts: a room's results folder or canonical scene with ground "
@@ -296,7 +301,7 @@ def build_parser(help_step: str | None = None) -> argparse.ArgumentParser:
                    help="fit: run the benchmark this many times (alternating with --baseline's) and report the "
                         "median round per size, every round's time and, with --baseline, each round pair's "
                         "speedup and their median (default 1); evaluate: evaluations in a row (the first may "
-                        "compile kernels); startup: fresh processes per step (the median is reported)")
+                        "compile kernels); startup, forkserver: fresh processes per step (the median is reported)")
     p.add_argument("--rooms", dest="room_list", nargs="+",
                    help="fit-sweep: rooms' results folders (scene/, poses/); merge-vote: traced synthetic rooms' "
                         "results folders (scene/, patches/, trace-paper/), figures per room and pooled; mask-cues: "
@@ -362,6 +367,13 @@ def _interrupted(exc: BaseException) -> KeyboardInterrupt | None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    how = None
+    if argv is None and os.environ.get("TRACE3D_FORKSERVER"):  # the command itself, opted in (docs/performance.md)
+        from .tooling.forkclient import delegate
+
+        status, how = delegate(sys.argv[1:])
+        if status is not None:
+            return status
     _entry_point_environment()
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(_help_step(argv))
@@ -377,6 +389,10 @@ def main(argv: list[str] | None = None) -> int:
     for handler in logging.getLogger().handlers:
         if not any(isinstance(f, TempPathFilter) for f in handler.filters):
             handler.addFilter(TempPathFilter())
+    from .tooling import forkclient
+
+    if how or forkclient.CHILD:
+        log.debug("trace3d %s: %s", args.command, forkclient.CHILD or how)
     import signal
     import threading
 

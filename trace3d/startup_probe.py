@@ -1,7 +1,10 @@
 """The child process of ``trace3d bench startup`` (:mod:`trace3d.bench.startup`): one pipeline step's work
 before its first line, then its kernels, timed; prints one JSON line.
 
-    python -m trace3d.startup_probe <command> <spawn time>
+    python -m trace3d.startup_probe <command> <spawn time> [--server]
+
+With ``--server`` the probe runs in a fork of the fork server (:mod:`trace3d.tooling.forkserver`,
+``trace3d bench forkserver``): what the entry point does before the step's first line, in the child.
 
 Outside :mod:`trace3d.bench` because it runs the ``trace3d`` entry point's own functions (:mod:`trace3d.cli`),
 which imports the benchmarks; no step imports this module.
@@ -72,8 +75,20 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description="the child of `trace3d bench startup` (not for direct use)")
     parser.add_argument("command")
     parser.add_argument("spawn", type=float, help="the parent's time.time() just before it started this process")
+    parser.add_argument("--server", action="store_true",
+                        help="run the probe in a fork of the fork server of key `default` (TRACE3D_FORKSERVER)")
     args = parser.parse_args(argv)
-    result = _probe(args.command, args.spawn)
+    if args.server:
+        from .tooling.forkclient import delegate
+
+        status, how = delegate([args.command, repr(args.spawn)], entry="probe", key="default")
+        if status is None:
+            print(f"startup_probe: {how}", file=sys.stderr)
+            return 1
+        return status
+    from .tooling import forkclient
+
+    result = {**_probe(args.command, args.spawn), "forked": forkclient.CHILD is not None}
     print(json.dumps(result))
     return 0
 

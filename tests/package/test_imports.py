@@ -206,10 +206,11 @@ STACK = [
     ["lifting"],
     ["evaluation", "extract", "segment", "report"],
     ["steps"],
-    ["tooling.schema", "tooling.codehash", "bench", "progress"],
+    ["tooling.schema", "tooling.codehash", "bench", "progress", "tooling.forkclient"],
     ["cli"],
     ["tooling.warm"],
     ["startup_probe"],
+    ["tooling.forkserver"],
 ]
 
 def _level() -> dict[str, int]:
