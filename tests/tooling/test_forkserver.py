@@ -96,7 +96,7 @@ def test_bad_input_is_one_sentence_and_exit_2_through_the_server(server, tmp_pat
     assert ran.stderr.startswith("trace3d scene: error: synthetic params: unknown parameter(s) ['nope']")
     assert ran.stderr.count("\n") == 1 and "Traceback" not in ran.stderr
     assert not (tmp_path / "x").exists()
-    assert "(trace3d scene synthetic --params ...): {'exit': 2}" in server_log(folder)  # it ran there
+    assert re.search(r"\(trace3d scene synthetic --params \.\.\. in \S+\): \{'exit': 2\}", server_log(folder))
 
 
 def test_no_server_runs_in_process(tmp_path):
@@ -252,7 +252,7 @@ def test_sigterm_reaches_the_child_and_the_job_exits_with_its_status(server, tmp
         assert err.splitlines() == ["trace3d patches: stopped (SIGTERM); nothing was written (an earlier output, "
                                     "if any, is unchanged)."]
         assert _gone(children)
-    assert re.search(r"\(trace3d patches --scene \S+ \.\.\.\): \{'exit': 143\}", server_log(folder))
+    assert re.search(r"\(trace3d patches --scene \S+ \.\.\. in \S+\): \{'exit': 143\}", server_log(folder))
 
 
 def test_a_killed_job_leaves_no_child_running(server, tmp_path):
@@ -263,7 +263,7 @@ def test_a_killed_job_leaves_no_child_running(server, tmp_path):
         proc.kill()  # SIGKILL: nothing forwarded; the server sees the job's connection close
         proc.wait()
         assert _gone(children), "the job's child still runs after the job was killed"
-    assert re.search(r"\(trace3d patches --scene \S+ \.\.\.\): \{'signal': 9\}", server_log(folder))
+    assert re.search(r"\(trace3d patches --scene \S+ \.\.\. in \S+\): \{'signal': 9\}", server_log(folder))
 
 
 def test_a_child_leaves_with_its_server(tmp_path):

@@ -388,7 +388,7 @@ def serve(folder: Path, key: str, idle_s: float = 3600.0) -> int:
                              else {"exit": os.waitstatus_to_exitcode(status)})
                     with contextlib.suppress(OSError):
                         _send(job["conn"], reply)
-                    _say(f"job {pid} (trace3d {' '.join(job['argv'][:3])} ...): {reply}")
+                    _say(f"job {pid} (trace3d {' '.join(job['argv'][:3])} ... in {job['cwd']}): {reply}")
                     selector.unregister(job["pidfd"])
                     os.close(job["pidfd"])
                     if not job["gone"]:  # else unregistered when the job went away
@@ -455,7 +455,8 @@ def _start_job(conn, server: Server, listener, selector, jobs) -> int | None:
             os.close(fd)
         _send(conn, {"ok": True, "pid": pid, "server": os.getpid()})
         conn.settimeout(None)
-        jobs[pid] = {"conn": conn, "pidfd": os.pidfd_open(pid), "gone": False, "argv": request["argv"]}
+        jobs[pid] = {"conn": conn, "pidfd": os.pidfd_open(pid), "gone": False, "argv": request["argv"],
+                     "cwd": request["cwd"]}
         return pid
     except (OSError, ValueError, KeyError, ConnectionError) as exc:
         if not isinstance(exc, (ConnectionAbortedError, _Empty)):
