@@ -218,8 +218,15 @@ def _cmd_bench(args: argparse.Namespace) -> None:
         from .bench.mask_cues import plot_cues, run_bench
 
         rooms = [Path(r) for r in (args.room_list or [args.room])]
-        results = [run_bench(room, masks=[room.parent / m.format(room=room.name) for m in (args.masks or [])],
-                             stride=args.stride) for room in rooms]
+
+        def masks_of(room: Path) -> list[Path]:
+            try:
+                return [room.parent / m.format(room=room.name) for m in (args.masks or [])]
+            except (KeyError, IndexError, ValueError) as exc:
+                raise Trace3DError(f"bench mask-cues: --masks may name the room as {{room}} and nothing else "
+                                   f"({exc!r} in {args.masks}).") from None
+
+        results = [run_bench(room, masks=masks_of(room), stride=args.stride) for room in rooms]
         if args.plot:
             plot_cues(results, Path(args.plot))
         result = results[0] if len(results) == 1 else {"rooms": results}

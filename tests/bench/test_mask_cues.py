@@ -126,3 +126,6 @@ def test_bad_input_is_one_sentence(fitted_room, tmp_path, capsys):
     assert cli_main(["bench", "mask-cues", "--room", str(fitted_room), "--masks", "{room}/nothing"]) == 2
     err = capsys.readouterr().err.strip()
     assert "missing; give bench mask-cues a masks folder" in err and len(err.splitlines()) == 1
+    assert cli_main(["bench", "mask-cues", "--room", str(fitted_room), "--masks", "{scene}/masks"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--masks may name the room as {room}" in err and len(err.splitlines()) == 1
