@@ -111,6 +111,8 @@ def run_lift(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Pat
         raise ConfigError("lift: contrastive lifting needs --labels (the consistent instance maps).")
     maps = load_label_maps(labels_dir, [c.name for c in train], "instance map", [(c.width, c.height) for c in train])
     relations = undecided_relations(Path(labels_dir), train) if p.undecided == "ignore" else None
+    # read before any training, so that a folder without hierarchies stops at once
+    coarse_maps = coarse_label_maps(Path(labels_dir), train, maps, p.coarse_depth) if p.coarse_depth is not None else None
     most = max((np.unique(m[m > 0]).size for m in maps), default=0)
     warning = None
     if most < 2:  # the loss pulls one instance together and pushes nothing apart: it reaches 0 and says nothing
@@ -119,10 +121,9 @@ def run_lift(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Pat
         log.warning("lift: %s; check the masks (or the merge) that made these maps", warning)
     features, history, timing = lift_features(model, train, maps, p, progress=progress, relations=relations)
     coarse_info = {}
-    if p.coarse_depth is not None:
+    if coarse_maps is not None:
         import dataclasses
 
-        coarse_maps = coarse_label_maps(Path(labels_dir), train, maps, p.coarse_depth)
         counts = [int(np.unique(m[m > 0]).size) for m in coarse_maps]
         log.info("lift: the coarse block on the patches regrouped by the masks at most %d deep: %.1f labels per "
                  "view (the patches: %.1f)", p.coarse_depth, float(np.mean(counts)),
