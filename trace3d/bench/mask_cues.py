@@ -100,8 +100,7 @@ def best_mask_iou(masks: np.ndarray, truth: np.ndarray) -> float:
     return float(np.max(inter / np.maximum(union, 1)))
 
 
-def run_bench(room: Path, masks: list[Path] | None = None, stride: int = 4, min_pixels: int = 50,
-              plot: Path | None = None) -> dict:
+def run_bench(room: Path, masks: list[Path] | None = None, stride: int = 4, min_pixels: int = 50) -> dict:
     """The cues' separability and the masks' object recall on ``room`` (module docstring).
 
     Args:
@@ -193,8 +192,6 @@ def run_bench(room: Path, masks: list[Path] | None = None, stride: int = 4, min_
         "cpu_seconds": round(time.process_time() - start, 2),
     }
     log.info("bench mask-cues: %d views, %s pairs", len(views), counts)
-    if plot is not None:
-        plot_cues([result], plot)
     return result
 
 

@@ -47,34 +47,18 @@ def parse_lift_params(params: dict | None):
     raise ConfigError(f"lift params.method: {method!r} is not one of {list(METHODS)}.")
 
 
-def undecided_relations(labels_dir: Path, cameras) -> list[np.ndarray]:
-    """Per training view the pairs of patches under one common mask (``undecided: ignore``), from the
-    patch step's hierarchies beside the maps; one sentence if the folder holds none (merged maps)."""
+def patch_hierarchies(labels_dir: Path, cameras, setting: str) -> list:
+    """Per training view its patch map and the patch step's hierarchy beside it (for ``undecided: ignore`` and
+    ``coarse_depth``, named by ``setting``); one sentence if the folder holds none (merged maps)."""
     from ..masks.patches import read_patches
-    from .contrastive import related_patches
 
     out = []
     for cam in cameras:
         path = labels_dir / f"{cam.name}.json"
         if not path.is_file():
-            raise ConfigError(f"lift params.undecided: ignore needs the patch step's hierarchy {path}; use it on "
+            raise ConfigError(f"lift params.{setting} needs the patch step's hierarchy {path}; use it on "
                               f"the raw patches (consistent_masks: false), not on merged instance maps.")
-        out.append(related_patches(read_patches(labels_dir, cam.name)[1]))  # checks the map against it
-    return out
-
-
-def coarse_label_maps(labels_dir: Path, cameras, maps: list[np.ndarray], depth: int) -> list[np.ndarray]:
-    """Per training view the patches regrouped by their masks at most ``depth`` deep (``coarse_depth``), from
-    the patch step's hierarchies beside the maps; one sentence if the folder holds none (merged maps)."""
-    from ..masks.patches import coarser_patches, read_patches
-
-    out = []
-    for cam, patch_map in zip(cameras, maps):
-        path = labels_dir / f"{cam.name}.json"
-        if not path.is_file():
-            raise ConfigError(f"lift params.coarse_depth needs the patch step's hierarchy {path}; use it on the raw "
-                              f"patches (consistent_masks: false), not on merged instance maps.")
-        out.append(coarser_patches(patch_map, read_patches(labels_dir, cam.name)[1], depth))
+        out.append(read_patches(labels_dir, cam.name))  # checks the map against it
     return out
 
 
@@ -110,9 +94,17 @@ def run_lift(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Pat
     if labels_dir is None:
         raise ConfigError("lift: contrastive lifting needs --labels (the consistent instance maps).")
     maps = load_label_maps(labels_dir, [c.name for c in train], "instance map", [(c.width, c.height) for c in train])
-    relations = undecided_relations(Path(labels_dir), train) if p.undecided == "ignore" else None
-    # read before any training, so that a folder without hierarchies stops at once
-    coarse_maps = coarse_label_maps(Path(labels_dir), train, maps, p.coarse_depth) if p.coarse_depth is not None else None
+    relations = coarse_maps = None
+    if p.undecided == "ignore" or p.coarse_depth is not None:  # read before any training: a bad folder stops at once
+        from ..masks.patches import coarser_patches
+        from .contrastive import related_patches
+
+        read = patch_hierarchies(Path(labels_dir), train,
+                                 "undecided: ignore" if p.undecided == "ignore" else "coarse_depth")
+        if p.undecided == "ignore":
+            relations = [related_patches(h) for _, h in read]
+        if p.coarse_depth is not None:
+            coarse_maps = [coarser_patches(m, h, p.coarse_depth) for m, h in read]
     most = max((np.unique(m[m > 0]).size for m in maps), default=0)
     warning = None
     if most < 2:  # the loss pulls one instance together and pushes nothing apart: it reaches 0 and says nothing

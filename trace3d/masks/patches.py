@@ -101,13 +101,15 @@ def nesting_depth(masks: np.ndarray) -> np.ndarray:
     tree; overlapping masks that do not contain each other do not count."""
     from .nested import pairwise_intersections
 
-    masks = np.asarray(masks, dtype=bool)
-    M = len(masks)
-    inter = pairwise_intersections(masks)  # [M, M] shared pixels, areas on the diagonal
-    area = np.diag(inter)
-    index = np.arange(M)
-    # contains[i, j]: mask i contains mask j
-    contains = (inter >= area[None, :]) & ((area[:, None] > area[None, :]) |
+    inter = pairwise_intersections(np.asarray(masks, dtype=bool))  # [M, M] shared pixels, areas on the diagonal
+    return _containers(inter, np.diag(inter), np.diag(inter))
+
+
+def _containers(inter: np.ndarray, size: np.ndarray, area: np.ndarray) -> np.ndarray:
+    """[M] int64: how many masks contain each mask. Mask i contains mask j when they share all of j's ``size``
+    (``inter`` [M, M]: shared pixels, or shared patches) and i's ``area`` is larger, or equal with i < j."""
+    index = np.arange(len(area))
+    contains = (inter >= size[None, :]) & ((area[:, None] > area[None, :]) |
                                            ((area[:, None] == area[None, :]) & (index[:, None] < index[None, :])))
     return contains.sum(axis=0).astype(np.int64)
 
@@ -140,14 +142,8 @@ def coarser_patches(patch_map: np.ndarray, hierarchy: "PatchHierarchy", max_dept
     1.. in raster order of their first pixel; a patch covered by none of them, and uncovered pixels, get 0.
     The contrastive lift's coarse block (``coarse_depth``) trains on these."""
     member = hierarchy.membership()  # [P + 1, M]
-    M = member.shape[1]
-    counts = member.sum(axis=0).astype(np.int64)
-    inter = member.T.astype(np.int64) @ member.astype(np.int64)  # [M, M] shared patches
-    area = np.asarray(hierarchy.mask_areas, np.int64)
-    index = np.arange(M)
-    contains = (inter >= counts[None, :]) & ((area[:, None] > area[None, :]) |
-                                             ((area[:, None] == area[None, :]) & (index[:, None] < index[None, :])))
-    keep = contains.sum(axis=0) <= max_depth
+    inter = member.T.astype(np.int64) @ member.astype(np.int64)  # [M, M] shared patches, counts on the diagonal
+    keep = _containers(inter, np.diag(inter), np.asarray(hierarchy.mask_areas, np.int64)) <= max_depth
     signature = member[:, keep]
     _, group = np.unique(signature, axis=0, return_inverse=True)
     group = group.reshape(-1) + 1
