@@ -809,15 +809,16 @@ def test_lift_with_undecided_pairs_ignored(tiny_fitted, tmp_path, capsys):
 
 def test_lift_with_a_coarse_block(tiny_fitted, tmp_path, capsys):
     """``coarse_depth``: the features are the plain lift's block and, beside it, a lift with the same settings on
-    the patches regrouped by the masks at most that deep (bit for bit both); merged maps: one sentence."""
+    the patches regrouped by the masks at most that deep (bit for bit both); a list of depths: one such block per
+    depth, in the list's order; merged maps, a repeated or empty list: one sentence."""
     from trace3d.cli import main
     from trace3d.masks.patches import PatchHierarchy, coarser_patches
     from trace3d.scene import write_u16
 
     root = tiny_fitted
-    labels, regrouped = tmp_path / "patches", tmp_path / "regrouped"
-    labels.mkdir()
-    regrouped.mkdir()
+    labels, regrouped, regrouped1 = tmp_path / "patches", tmp_path / "regrouped", tmp_path / "regrouped1"
+    for folder in (labels, regrouped, regrouped1):
+        folder.mkdir()
     for png in sorted((root / "scene" / "instances").glob("*.png")):
         (labels / png.name).write_bytes(png.read_bytes())
         ids = read_u16(png, "instance map")
@@ -832,6 +833,7 @@ def test_lift_with_a_coarse_block(tiny_fitted, tmp_path, capsys):
         coarse = coarser_patches(ids, h, 0)
         assert set(np.unique(coarse)) <= {0, 1, 2} and (coarse > 0).sum() == (ids > 0).sum()
         write_u16(regrouped / png.name, coarse.astype(np.uint16))
+        write_u16(regrouped1 / png.name, coarser_patches(ids, h, 1).astype(np.uint16))
     base = {"method": "contrastive", "preset": "paper", "iterations": 30, "pixels": 128, "pool_pixels": 256,
             "pca_views": 1}
     args = ["lift", "--scene", str(root / "scene"), "--poses", str(root / "poses"), "--gaussians",
@@ -847,7 +849,25 @@ def test_lift_with_a_coarse_block(tiny_fitted, tmp_path, capsys):
     info = json.loads((tmp_path / "two" / "lift.json").read_text())
     assert info["dim"] == 32 and info["coarse"]["depth"] == 0 and 1 <= info["coarse"]["labels_per_view"] <= 2
     assert (tmp_path / "two" / "loss_coarse.csv").is_file()
+    assert main(args + [str(tmp_path / "three"), "--labels", str(labels), "--params",
+                        json.dumps({**base, "coarse_depth": [1, 0]})]) == 0
+    assert main(args + [str(tmp_path / "coarse1"), "--labels", str(regrouped1), "--params", json.dumps(base)]) == 0
+    three = np.load(tmp_path / "three" / "features.npy")
+    assert three.shape[1] == 48
+    np.testing.assert_array_equal(three[:, :32], np.concatenate([two[:, :16], np.load(tmp_path / "coarse1" /
+                                                                                      "features.npy")], 1))
+    np.testing.assert_array_equal(three[:, 32:], two[:, 16:])
+    assert not np.array_equal(three[:, 16:32], three[:, 32:])  # the two depths cut the views differently
+    info = json.loads((tmp_path / "three" / "lift.json").read_text())
+    assert info["dim"] == 48 and [b["depth"] for b in info["coarse"]] == [1, 0]
+    assert (tmp_path / "three" / "loss_coarse_1.csv").is_file() and (tmp_path / "three" / "loss_coarse_0.csv").is_file()
     capsys.readouterr()
+    for bad in ([0, 0], [], [-1]):
+        assert main(args + [str(tmp_path / "bad"), "--labels", str(labels), "--params",
+                            json.dumps({**base, "coarse_depth": bad})]) == 2
+        err = capsys.readouterr().err
+        assert "coarse_depth" in err and "Traceback" not in err
+        assert not (tmp_path / "bad").exists()
     assert main(args + [str(tmp_path / "merged"), "--labels", str(root / "scene" / "instances"), "--params",
                         json.dumps({**base, "coarse_depth": 1})]) == 2
     err = capsys.readouterr().err

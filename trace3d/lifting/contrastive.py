@@ -35,6 +35,11 @@ alone, the parts of an object that the masks split are pushed apart as far as tw
 (:func:`trace3d.masks.patches.coarser_patches`), and the features are the two blocks side by side
 (2 x ``dim``): a distance between two Gaussians then counts both how the fine and how the coarse masks
 cut them. Needs the patch step's hierarchy beside the maps (the raw patches, ``consistent_masks: false``).
+A view's nesting tree is as deep as its masks make it: where the coarsest region of a view was too large to
+be a mask (the source's ``max_area``), its other regions sit one level higher than in a view that kept it,
+so one object lies at depth 0 in some views and depth 1 in others (the fern capture). ``coarse_depth: [1,
+0]`` trains one coarse block per listed depth (3 x ``dim`` features): whichever depth holds the object in
+a view, one block keeps it whole there.
 
 The ``paper`` preset is the printed kernel with the released code's learning rate (0.005), counts and
 pixels: at the printed lr 1e-5 the loss does not move in 1,500 iterations on a default room, at
@@ -110,8 +115,16 @@ class ContrastiveParams:
     undecided_weight: float = 0.0  # under ``ignore``: the weight such a pair keeps in the denominator
     # a second block of ``dim`` features trained, with the same settings (``push``), on the patches regrouped by
     # their masks at most this deep (trace3d.masks.patches.coarser_patches; needs the patch step's hierarchy):
-    # the features are the two blocks side by side. None: one block (the paper). Module docstring.
-    coarse_depth: int | None = None
+    # the features are the two blocks side by side. A list of depths: one such block per depth, in its order.
+    # None: one block (the paper). Module docstring.
+    coarse_depth: int | list[int] | None = None
+
+    @property
+    def coarse_depths(self) -> list[int]:
+        """The depths of the coarse blocks, in their order ([] without ``coarse_depth``)."""
+        if self.coarse_depth is None:
+            return []
+        return [self.coarse_depth] if isinstance(self.coarse_depth, int) else list(self.coarse_depth)
 
     def __post_init__(self) -> None:
         for key, value in PRESET_VALUES[self.preset].items():
@@ -122,8 +135,10 @@ class ContrastiveParams:
                              f"{self.iterations}, {self.pixels}, {self.pool_pixels}")
         if self.undecided not in ("push", "ignore"):
             raise ValueError(f"undecided must be 'push' or 'ignore', got {self.undecided!r}")
-        if self.coarse_depth is not None and self.coarse_depth < 0:
-            raise ValueError(f"coarse_depth must be >= 0 or null, got {self.coarse_depth}")
+        depths = self.coarse_depths
+        if any(d < 0 for d in depths) or len(set(depths)) != len(depths) or self.coarse_depth == []:
+            raise ValueError(f"coarse_depth must be a depth >= 0, a list of distinct such depths, or null, got "
+                             f"{self.coarse_depth}")
         if not 0.0 <= self.undecided_weight <= 1.0:
             raise ValueError(f"undecided_weight must lie in [0, 1], got {self.undecided_weight}")
         if not (self.lr > 0 and self.temperature > 0 and self.temperature_pos > 0 and self.temperature_neg > 0):

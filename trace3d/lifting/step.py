@@ -104,7 +104,7 @@ def run_lift(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Pat
         if p.undecided == "ignore":
             relations = [related_patches(h) for _, h in read]
         if p.coarse_depth is not None:
-            coarse_maps = [coarser_patches(m, h, p.coarse_depth) for m, h in read]
+            coarse_maps = [[coarser_patches(m, h, depth) for m, h in read] for depth in p.coarse_depths]
     most = max((np.unique(m[m > 0]).size for m in maps), default=0)
     warning = None
     if most < 2:  # the loss pulls one instance together and pushes nothing apart: it reaches 0 and says nothing
@@ -116,18 +116,23 @@ def run_lift(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Pat
     if coarse_maps is not None:
         import dataclasses
 
-        counts = [int(np.unique(m[m > 0]).size) for m in coarse_maps]
-        log.info("lift: the coarse block on the patches regrouped by the masks at most %d deep: %.1f labels per "
-                 "view (the patches: %.1f)", p.coarse_depth, float(np.mean(counts)),
-                 float(np.mean([np.unique(m[m > 0]).size for m in maps])))
-        coarse, coarse_history, coarse_timing = lift_features(
-            model, train, coarse_maps, dataclasses.replace(p, undecided="push"), progress=progress)
-        features = np.concatenate([features, coarse], axis=1)
-        write_history(out_dir / "loss_coarse.csv", coarse_history)
-        tail = [v for _, v in coarse_history[-max(1, len(coarse_history) // 20):]]
-        coarse_info = {"coarse": {"depth": p.coarse_depth, "labels_per_view": float(np.mean(counts)),
-                                  "final_loss": float(np.mean(tail)) if tail else None,
-                                  "train_seconds": coarse_timing["train_seconds"]}}
+        blocks = []
+        for depth, depth_maps in zip(p.coarse_depths, coarse_maps):
+            counts = [int(np.unique(m[m > 0]).size) for m in depth_maps]
+            log.info("lift: a coarse block on the patches regrouped by the masks at most %d deep: %.1f labels per "
+                     "view (the patches: %.1f)", depth, float(np.mean(counts)),
+                     float(np.mean([np.unique(m[m > 0]).size for m in maps])))
+            coarse, coarse_history, coarse_timing = lift_features(
+                model, train, depth_maps, dataclasses.replace(p, undecided="push"), progress=progress)
+            features = np.concatenate([features, coarse], axis=1)
+            # one block (an integer coarse_depth): loss_coarse.csv; a list: one file per depth
+            name = "loss_coarse.csv" if isinstance(p.coarse_depth, int) else f"loss_coarse_{depth}.csv"
+            write_history(out_dir / name, coarse_history)
+            tail = [v for _, v in coarse_history[-max(1, len(coarse_history) // 20):]]
+            blocks.append({"depth": depth, "labels_per_view": float(np.mean(counts)),
+                           "final_loss": float(np.mean(tail)) if tail else None,
+                           "train_seconds": coarse_timing["train_seconds"]})
+        coarse_info = {"coarse": blocks[0] if isinstance(p.coarse_depth, int) else blocks}
     np.save(out_dir / "features.npy", features)
     write_history(out_dir / "loss.csv", history)
     loss_picture(out_dir / "loss.png", history)
