@@ -56,7 +56,7 @@ endif
 # Without ground truth or SAM (docs/masks.md, docs/capture.md): the default rooms with masks from the fitted
 # geometry (config/geometry.yaml; the default run's fits, made first if absent), and the LLFF fern capture
 # (config/fern.yaml; data_root ../shared/captures, else `make fern FERN_ROOT=/path/to/captures`).
-GEOMETRY_EVALS := $(foreach k,0 1 2 3,$(foreach v,full both_off both_off_ignore both_off_coarse,results/room$(k)@geometry/$(v)/eval))
+GEOMETRY_EVALS := $(foreach k,0 1 2 3,$(foreach v,full both_off both_off_ignore both_off_coarse both_off_coarse01,results/room$(k)@geometry/$(v)/eval))
 FERN_ROOT ?= ../shared/captures
 geometry: $(STAMP)
 	$(BIN)/python -m trace3d.tooling.warm --jobs $(CORES)
