@@ -461,3 +461,10 @@ def test_capture_doc_two_core_config_dry_runs(tmp_path):
     masks = re.search(r"trace3d --threads \d+ masks .*", out.stdout).group(0)
     assert "--source geometry" in masks and f"--gaussians {tmp_path}/results/fern/gaussians" in masks
     assert '"schedule_scale": 0.05' in out.stdout and '"images_factor": 8' in out.stdout
+    # the `coarse` variant the section's results come from: the raw patches lifted with the coarse blocks
+    out = subprocess.run([snakemake, "-s", str(repo / "Snakefile"), "-n", "-p", "--cores", "2",
+                          "--configfile=fern.yaml", f"{tmp_path}/results/fern/coarse/segment"],
+                         cwd=tmp_path, capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stdout + out.stderr
+    lift = re.search(r"trace3d --threads \d+ lift .*", out.stdout).group(0)
+    assert f"--labels {tmp_path}/results/fern/patches" in lift and '"coarse_depth": [1, 0]' in lift
