@@ -593,6 +593,31 @@ def test_schema_refuses_what_the_dataclasses_refuse():
     assert not disagreements, "\n".join(disagreements[:30])
 
 
+def test_schema_bounds_the_items_of_list_parameters():
+    """A declared range holds for every item of a list parameter, also where the field may be a number or a list
+    (``coarse_depth: int | list[int] | None``): the schema and the step refuse and accept the same values."""
+    import jsonschema
+
+    from trace3d.errors import ConfigError
+    from trace3d.lifting.contrastive import ContrastiveParams
+    from trace3d.params import from_mapping
+    from trace3d.tooling.schema import dataclass_schema
+    from trace3d.tracing.refine import RefineParams
+
+    cases = [(ContrastiveParams, "coarse_depth", value) for value in (1, -1, [1, 0], [0, -1], [-2], None)]
+    cases += [(RefineParams, "detect_at", value) for value in ([500, 1000], [-5, 1000])]
+    for cls, key, value in cases:
+        try:
+            from_mapping(cls, {key: value})
+            code = True
+        except ConfigError:
+            code = False
+        schema_ok = jsonschema.Draft202012Validator(dataclass_schema([cls])).is_valid({key: value})
+        assert code == schema_ok, (cls.__name__, key, value, code, schema_ok)
+        negative = any(v < 0 for v in (value if isinstance(value, list) else [value]) if v is not None)
+        assert code is not negative, (cls.__name__, key, value)
+
+
 def test_a_range_is_one_sentence_naming_the_key():
     from trace3d.errors import ConfigError
     from trace3d.masks.simulate import SimulateParams

@@ -250,6 +250,20 @@ def type_schema(annotation: Any) -> dict:
     return {}
 
 
+def _bounded(schema: dict, bounds: dict) -> dict:
+    """``schema`` with a number's ``bounds`` on its numbers and on each item of its lists, through ``anyOf``
+    alternatives (``int | list[int] | None``: the integer and every item of the list)."""
+    if "anyOf" in schema:
+        return {**schema, "anyOf": [_bounded(option, bounds) for option in schema["anyOf"]]}
+    kinds = schema.get("type")
+    kinds = [kinds] if isinstance(kinds, str) else list(kinds or ())
+    if "array" in kinds:
+        return {**schema, "items": {**schema.get("items", {}), **bounds}}
+    if "integer" in kinds or "number" in kinds:
+        return {**schema, **bounds}
+    return schema
+
+
 def dataclass_schema(classes: list[type], drop: tuple[str, ...] = ()) -> dict:
     """A closed object schema holding the fields of ``classes`` (a key of any one of them is allowed).
 
@@ -274,11 +288,7 @@ def dataclass_schema(classes: list[type], drop: tuple[str, ...] = ()) -> dict:
             else:
                 schema = type_schema(hints[f.name])
             if f.name in ranges:  # the range check_ranges applies (to each item of a list)
-                bounds = range_schema(ranges[f.name])
-                if schema.get("type") == "array" or "array" in (schema.get("type") or ()):
-                    schema = {**schema, "items": {**schema.get("items", {}), **bounds}}
-                else:
-                    schema = {**schema, **bounds}
+                schema = _bounded(schema, range_schema(ranges[f.name]))
             default = _default(f)
             text = meanings.get(f.name) or ""
             shown = "null (preset)" if default is None else json.dumps(default)
