@@ -34,7 +34,7 @@ Writes into ``out_dir``: ``object.ply`` (the object's Gaussians, the 3DGS/2DGS P
 of the rendered weight than the rest, :func:`object_mask`; then the object rendered alone from
 ``picture_views`` training views, those that show most of it), ``turntable.png`` (the object alone from
 ``turntable_views`` directions around it) and ``extract.json`` (the click, the selection, the
-threshold, the Gaussian count and the settings). Its click IoU on the rooms: docs/evaluation.md.
+threshold, the Gaussian count and the settings). Its click IoU on the rooms: docs/evaluation.md; how it was chosen: docs/objects.md.
 """
 
 from __future__ import annotations

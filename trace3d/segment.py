@@ -27,7 +27,7 @@ or ``graph`` source), the objects are what the lift separates *and* what hangs t
 evaluation clusters them: :func:`~trace3d.evaluation.panoptic.cluster_features`, then clusters that win
 fewer than ``min_pixels`` training pixels are dropped); ``method: hdbscan_graph`` splits those clusters
 into their pieces connected in 3D (light pieces go back to their cluster's heaviest one) and then runs
-steps 4 and 5. The choice of the defaults (measured on development rooms): docs/evaluation.md.
+steps 4 and 5. The choice of the defaults (measured on development rooms): docs/objects.md.
 
 **Files**: per object its Gaussians (``objects/<k>.ply``, the 3DGS/2DGS layout of
 :meth:`~trace3d.gaussians.GaussianModel.write_ply`) and the object alone from ``turntable_views``
@@ -191,7 +191,7 @@ def feature_threshold(features: np.ndarray, weights: np.ndarray, edges: np.ndarr
     together and pushes other instances' apart. The random pairs that fall on one object are taken out
     first: their share is estimated as twice the share of random pairs closer than the neighbours'
     median distance.
-    Measured on development lifts (docs/evaluation.md) it lies at 4-12.
+    Measured on development lifts (docs/objects.md) it lies at 4-12.
 
     ``near`` [E] and ``order`` [E]: the edges' feature distances (:func:`edge_distances`) and their stable
     ascending order, if computed already (:class:`SeenGraph`); the same values either way."""
