@@ -738,10 +738,18 @@ def step_env() -> dict:
     return dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
 
 
+def _default_sigint() -> None:
+    """In the child before exec: Ctrl-C's default action, as in a terminal. A suite started in the background
+    (``nohup ... &``, a CI runner) ignores SIGINT, the ignore is inherited, and Python then installs no
+    KeyboardInterrupt handler: the step would not see the interruption at all."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def start_patches(world: World, out: Path, scene: Path | None = None, masks: Path | None = None) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "trace3d.cli", "patches", "--scene", str(scene or world.scene),
                              "--masks", str(masks or world.masks), "--out", str(out)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=step_env())
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=step_env(),
+                            preexec_fn=_default_sigint)
 
 
 def wait_for_tmp(out: Path, proc: subprocess.Popen, timeout: float = 120.0) -> bool:
@@ -757,9 +765,10 @@ def wait_for_tmp(out: Path, proc: subprocess.Popen, timeout: float = 120.0) -> b
 
 
 def test_ctrl_c_is_one_line_and_exit_130(world, tmp_path):
-    """Ctrl-C while the step writes: one line, exit 130, nothing written. On a scene large enough (160 x 120,
-    16 views: some 0.3 s of writing) that the signal arrives before the step ends; on the module's tiny scene
-    the step finished first under the suite's load and the test skipped (two CI runs of 2026-11-29)."""
+    """Ctrl-C while the step writes: one line, exit 130, nothing written. The step runs with SIGINT's default
+    action (:func:`_default_sigint`; in a suite started in the background it was ignored and the test skipped),
+    on a scene large enough (160 x 120, 16 views: some 0.3 s of writing) that the signal arrives before the
+    step ends."""
     scene, masks = tmp_path / "scene", tmp_path / "masks"
     assert main(["scene", "synthetic", "--out", str(scene), "--params",
                  json.dumps({**TINY_SCENE, "width": 160, "height": 120, "num_views": 16, "test_every": 4})]) == 0
