@@ -198,14 +198,11 @@ def _cmd_bench(args: argparse.Namespace) -> None:
 
         result = run_bench(Path(args.room), variant=args.variant, params=load_params_arg(args.params),
                            repeats=args.rounds)
-    elif args.name == "startup":
-        from .bench.startup import run_bench
+    elif args.name in ("startup", "forkserver"):  # the same probe, in fresh processes or forks of the server
+        from .bench import forkserver, startup
 
-        result = run_bench(rounds=args.rounds, commands=["tables", "evaluate"] if args.quick else None)
-    elif args.name == "forkserver":
-        from .bench.forkserver import run_bench
-
-        result = run_bench(rounds=args.rounds, commands=["tables", "evaluate"] if args.quick else None)
+        bench = startup if args.name == "startup" else forkserver
+        result = bench.run_bench(rounds=args.rounds, commands=["tables", "evaluate"] if args.quick else None)
     elif args.name == "scheduler":
         from .bench.scheduler import run_bench
 

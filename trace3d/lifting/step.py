@@ -62,6 +62,12 @@ def patch_hierarchies(labels_dir: Path, cameras, setting: str) -> list:
     return out
 
 
+def _final_loss(history: list) -> float | None:
+    """The mean loss over the last twentieth of a training history ((iteration, loss) pairs); None if empty."""
+    tail = [v for _, v in history[-max(1, len(history) // 20):]]
+    return float(np.mean(tail)) if tail else None
+
+
 def run_lift(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Path | None, out_dir: Path,
              params: dict, progress: bool = True) -> dict:
     """Run the lift step into ``out_dir``; returns the lift.json content."""
@@ -105,7 +111,8 @@ def run_lift(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Pat
             relations = [related_patches(h) for _, h in read]
         if p.coarse_depth is not None:
             coarse_maps = [[coarser_patches(m, h, depth) for m, h in read] for depth in p.coarse_depths]
-    most = max((np.unique(m[m > 0]).size for m in maps), default=0)
+    labels_per_view = [int(np.unique(m[m > 0]).size) for m in maps]
+    most = max(labels_per_view, default=0)
     warning = None
     if most < 2:  # the loss pulls one instance together and pushes nothing apart: it reaches 0 and says nothing
         warning = (f"no training view's instance map in {labels_dir} holds two instances (at most {most}); the "
@@ -116,32 +123,28 @@ def run_lift(scene, poses_dir: Path | None, gaussians_dir: Path, labels_dir: Pat
     if coarse_maps is not None:
         import dataclasses
 
-        blocks = []
+        single = isinstance(p.coarse_depth, int)  # one block: loss_coarse.csv and a dict; a list: per depth
+        blocks, parts = [], [features]
         for depth, depth_maps in zip(p.coarse_depths, coarse_maps):
             counts = [int(np.unique(m[m > 0]).size) for m in depth_maps]
             log.info("lift: a coarse block on the patches regrouped by the masks at most %d deep: %.1f labels per "
-                     "view (the patches: %.1f)", depth, float(np.mean(counts)),
-                     float(np.mean([np.unique(m[m > 0]).size for m in maps])))
+                     "view (the patches: %.1f)", depth, float(np.mean(counts)), float(np.mean(labels_per_view)))
             coarse, coarse_history, coarse_timing = lift_features(
                 model, train, depth_maps, dataclasses.replace(p, undecided="push"), progress=progress)
-            features = np.concatenate([features, coarse], axis=1)
-            # one block (an integer coarse_depth): loss_coarse.csv; a list: one file per depth
-            name = "loss_coarse.csv" if isinstance(p.coarse_depth, int) else f"loss_coarse_{depth}.csv"
-            write_history(out_dir / name, coarse_history)
-            tail = [v for _, v in coarse_history[-max(1, len(coarse_history) // 20):]]
+            parts.append(coarse)
+            write_history(out_dir / ("loss_coarse.csv" if single else f"loss_coarse_{depth}.csv"), coarse_history)
             blocks.append({"depth": depth, "labels_per_view": float(np.mean(counts)),
-                           "final_loss": float(np.mean(tail)) if tail else None,
-                           "train_seconds": coarse_timing["train_seconds"]})
-        coarse_info = {"coarse": blocks[0] if isinstance(p.coarse_depth, int) else blocks}
+                           "final_loss": _final_loss(coarse_history), "train_seconds": coarse_timing["train_seconds"]})
+        features = np.concatenate(parts, axis=1)
+        coarse_info = {"coarse": blocks[0] if single else blocks}
     np.save(out_dir / "features.npy", features)
     write_history(out_dir / "loss.csv", history)
     loss_picture(out_dir / "loss.png", history)
     test = [c for c in cameras if c.split == "test"] or train
     views = [test[i] for i in np.linspace(0, len(test) - 1, min(p.pca_views, len(test))).round().astype(int)]
     pca_picture(out_dir / "pca.png", model, views, features, scene, p.near)
-    tail = [v for _, v in history[-max(1, len(history) // 20):]]
     info = {"method": "contrastive", "params": to_dict(p), "gaussians": len(model), "dim": int(features.shape[1]),
-            "seconds": time.perf_counter() - start, "final_loss": float(np.mean(tail)) if tail else None,
+            "seconds": time.perf_counter() - start, "final_loss": _final_loss(history),
             **timing, **coarse_info}
     if warning:
         info["warning"] = warning
